@@ -1,0 +1,1 @@
+"""CAN-side helpers shared by the encoder and the runtime (no torch)."""
