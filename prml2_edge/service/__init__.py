@@ -1,0 +1,1 @@
+"""Running the edge runtime as a service: systemd notify/watchdog, execution-provider choice."""
