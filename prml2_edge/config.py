@@ -1,0 +1,201 @@
+"""Runtime configuration: frozen dataclasses loaded from TOML, validated on load.
+
+Unknown keys and wrong types are refused with the key's full name (``[can] bitrat``),
+so a typo never silently falls back to a default. ``deploy/runtime.toml`` lists every
+option with its default. Command-line flags override file values.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from prml2_edge.errors import ConfigError, ModelError
+
+
+@dataclass(frozen=True)
+class CanConfig:
+    interface: str = "socketcan"  # any python-can interface name: socketcan, pcan, kvaser, virtual, ...
+    channel: str = "can0"
+    bitrate: int | None = None  # None: leave the interface as configured (SocketCAN: deploy/can-setup.sh)
+    fd: bool = False
+
+
+@dataclass(frozen=True)
+class SignalsConfig:
+    map: str = "prml2_onboard"  # shipped map name or path to a map TOML
+    dbc: str | None = None  # DBC path; None: the map's own DBC
+    mu: float = 1.0  # road friction for the physics guard (<= 0.5: low-mu limits)
+    stale_periods: float = 3.0  # a signal is invalid after this many of its periods without a frame
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    path: str | None = None  # ONNX file; None: the shipped default model
+    sha256: str | None = None  # pin: refuse any other file
+    providers: tuple[str, ...] = ("tensorrt", "cuda", "cpu")
+    threads: int = 1  # ONNX Runtime intra-op threads
+    trt_fp16: bool = False
+    trt_cache_dir: str = "~/.cache/prml2/trt"
+    stride: int = 1  # a new window every `stride` 50 Hz steps
+
+
+@dataclass(frozen=True)
+class InitialPoseConfig:
+    source: str = "gnss"  # "gnss" (fix message on the bus), "config" (x/y/heading below), "file"
+    x_m: float = 0.0  # east
+    y_m: float = 0.0  # north
+    heading_deg: float = 0.0  # clockwise from north (as GNSS receivers report it)
+    file: str | None = None  # JSON/TOML with x_m, y_m, heading_deg
+
+
+@dataclass(frozen=True)
+class SinksConfig:
+    jsonl: str | None = None
+    csv: str | None = None
+    tum: str | None = None
+    can_out: bool = False  # send PRML2_POSE / PRML2_DYNAMICS / PRML2_POSE_STD on the bus
+    status_interval_s: float = 5.0  # periodic status line
+
+
+@dataclass(frozen=True)
+class RuntimeConfig:
+    can: CanConfig = field(default_factory=CanConfig)
+    signals: SignalsConfig = field(default_factory=SignalsConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    initial_pose: InitialPoseConfig = field(default_factory=InitialPoseConfig)
+    sinks: SinksConfig = field(default_factory=SinksConfig)
+
+
+_INITIAL_POSE_SOURCES = ("gnss", "config", "file")
+
+
+def _type_name(tp: object) -> str:
+    return getattr(tp, "__name__", str(tp)).replace("NoneType", "none")
+
+
+def _coerce(where: str, value: object, tp: object) -> object:
+    """Check ``value`` against the annotation ``tp`` (simple types, Optional, tuple[str, ...])."""
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _coerce(where, value, arg)
+            except ConfigError as exc:
+                errors.append(exc)
+        raise errors[0]
+    if origin is tuple:
+        (item,) = {a for a in typing.get_args(tp) if a is not Ellipsis}
+        if not isinstance(value, list | tuple):
+            raise ConfigError(f"{where}: expected a list of {_type_name(item)}, got {value!r}")
+        return tuple(_coerce(f"{where}[{i}]", v, item) for i, v in enumerate(value))
+    if tp is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if tp in (int, float, str, bool):
+        if isinstance(value, bool) and tp is not bool:
+            raise ConfigError(f"{where}: expected {_type_name(tp)}, got {value!r}")
+        if not isinstance(value, tp):  # type: ignore[arg-type]
+            raise ConfigError(f"{where}: expected {_type_name(tp)}, got {value!r}")
+        return value
+    raise TypeError(f"unsupported config type {tp!r}")  # pragma: no cover - programming error
+
+
+def _build(cls: type, table: dict, where: str):
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(table) - names)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key {unknown[0]!r} (known: {', '.join(sorted(names))})")
+    kwargs = {}
+    for name, value in table.items():
+        tp = hints[name]
+        key = f"{where}.{name}" if where else name
+        if dataclasses.is_dataclass(tp):
+            if not isinstance(value, dict):
+                raise ConfigError(f"[{key}]: expected a table, got {value!r}")
+            kwargs[name] = _build(tp, value, key)
+        else:
+            kwargs[name] = _coerce(f"[{where}] {name}" if where else name, value, tp)
+    return cls(**kwargs)
+
+
+def validate(cfg: RuntimeConfig) -> RuntimeConfig:
+    """Value checks that types alone cannot express."""
+    if cfg.model.threads < 1:
+        raise ConfigError(f"[model] threads must be >= 1, got {cfg.model.threads}")
+    if cfg.model.stride < 1:
+        raise ConfigError(f"[model] stride must be >= 1, got {cfg.model.stride}")
+    if cfg.model.sha256 is not None and (len(cfg.model.sha256) != 64 or
+                                         any(c not in "0123456789abcdef" for c in cfg.model.sha256.lower())):
+        raise ConfigError("[model] sha256 must be 64 hex digits (sha256sum model.onnx)")
+    if not cfg.signals.mu > 0:
+        raise ConfigError(f"[signals] mu must be > 0, got {cfg.signals.mu}")
+    if cfg.signals.stale_periods <= 0:
+        raise ConfigError(f"[signals] stale_periods must be > 0, got {cfg.signals.stale_periods}")
+    if cfg.initial_pose.source not in _INITIAL_POSE_SOURCES:
+        raise ConfigError(f"[initial_pose] source must be one of {', '.join(_INITIAL_POSE_SOURCES)}, "
+                          f"got {cfg.initial_pose.source!r}")
+    if cfg.initial_pose.source == "file" and not cfg.initial_pose.file:
+        raise ConfigError("[initial_pose] source = 'file' needs file = PATH")
+    return cfg
+
+
+def config_from_dict(data: dict, source: str = "config") -> RuntimeConfig:
+    try:
+        return validate(_build(RuntimeConfig, data, ""))
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+
+
+def load_config(path: str | Path) -> RuntimeConfig:
+    """Read a runtime TOML file; every problem is one :class:`ConfigError` line naming the key."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML ({exc})") from exc
+    return config_from_dict(data, str(path))
+
+
+def with_overrides(cfg: RuntimeConfig, **sections: dict) -> RuntimeConfig:
+    """Apply command-line overrides, e.g. ``with_overrides(cfg, can={"channel": "can1"})``.
+
+    ``None`` values mean "not given on the command line" and are skipped.
+    """
+    data = dataclasses.asdict(cfg)
+    for section, values in sections.items():
+        if section not in data:
+            raise ConfigError(f"unknown config section {section!r}")
+        data[section].update({k: v for k, v in values.items() if v is not None})
+    return config_from_dict(data, "command line")
+
+
+def sha256_file(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def verify_pinned_model(path: str | Path, expected_sha256: str | None) -> str:
+    """Return the file's SHA-256; refuse it when a pin is set and differs."""
+    digest = sha256_file(path)
+    if expected_sha256 is not None and digest != expected_sha256.lower():
+        raise ModelError(f"{path}: SHA-256 {digest} does not match the pinned {expected_sha256.lower()} "
+                         "([model] sha256 in the config); refusing to load it")
+    return digest

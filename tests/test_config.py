@@ -1,0 +1,64 @@
+"""Runtime TOML configuration: every option loads, unknown keys and wrong types are refused by name."""
+
+import dataclasses
+
+import pytest
+
+from prml2_edge.config import (
+    RuntimeConfig,
+    config_from_dict,
+    load_config,
+    sha256_file,
+    verify_pinned_model,
+    with_overrides,
+)
+from prml2_edge.errors import ConfigError, ModelError
+
+
+def test_shipped_example_lists_every_option(repo_root):
+    cfg = load_config(repo_root / "deploy" / "runtime.toml")
+    assert cfg.can.interface == "socketcan" and cfg.model.providers == ("tensorrt", "cuda", "cpu")
+    text = (repo_root / "deploy" / "runtime.toml").read_text()
+    for section in dataclasses.fields(RuntimeConfig):
+        assert f"[{section.name}]" in text
+        for opt in dataclasses.fields(getattr(RuntimeConfig(), section.name)):
+            assert opt.name in text, f"[{section.name}] {opt.name} missing from deploy/runtime.toml"
+
+
+@pytest.mark.parametrize("doc, message", [
+    ({"can": {"bitrat": 500000}}, r"unknown key 'bitrat'"),
+    ({"cann": {}}, r"unknown key 'cann'"),
+    ({"can": {"bitrate": "fast"}}, r"\[can\] bitrate: expected int"),
+    ({"model": {"threads": True}}, r"\[model\] threads: expected int"),
+    ({"model": {"providers": "cpu"}}, r"\[model\] providers: expected a list"),
+    ({"model": {"threads": 0}}, r"threads must be >= 1"),
+    ({"model": {"sha256": "abc"}}, r"64 hex digits"),
+    ({"signals": {"mu": -1}}, r"mu must be > 0"),
+    ({"initial_pose": {"source": "magic"}}, r"source must be one of"),
+    ({"sinks": "x"}, r"\[sinks\]: expected a table"),
+])
+def test_bad_values_are_named(doc, message):
+    with pytest.raises(ConfigError, match=message):
+        config_from_dict(doc, "cfg.toml")
+
+
+def test_ints_are_accepted_for_floats_and_overrides_apply(tmp_path):
+    p = tmp_path / "r.toml"
+    p.write_text('[signals]\nmu = 1\n[can]\ninterface = "virtual"\n')
+    cfg = load_config(p)
+    assert cfg.signals.mu == 1.0 and isinstance(cfg.signals.mu, float)
+    cfg2 = with_overrides(cfg, can={"channel": "vcan0", "interface": None}, model={"threads": 2})
+    assert cfg2.can.channel == "vcan0" and cfg2.can.interface == "virtual" and cfg2.model.threads == 2
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        p.write_text("[can\n")
+        load_config(p)
+
+
+def test_model_pinning(tmp_path):
+    model = tmp_path / "m.onnx"
+    model.write_bytes(b"model bytes")
+    digest = sha256_file(model)
+    assert verify_pinned_model(model, digest.upper()) == digest
+    assert verify_pinned_model(model, None) == digest
+    with pytest.raises(ModelError, match="does not match the pinned"):
+        verify_pinned_model(model, "0" * 64)
