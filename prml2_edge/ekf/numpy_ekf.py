@@ -1,0 +1,468 @@
+"""Planar EKF in NumPy (float64) for the edge runtime and evaluation. No torch.
+
+State ``x = [p_x, p_y, psi, omega_z, v_x, v_y, a_x, a_y]`` (:class:`prml2_edge.schema.EkfState`):
+position [m] in the world frame (x east, y north), heading ``psi`` [rad] counter-clockwise from
+east (kept unwrapped inside the filter), yaw rate [rad/s], velocity [m/s] and acceleration
+[m/s^2] in the vehicle frame (x forward, y left). ``R(psi) = [[cos, -sin], [sin, cos]]`` maps
+the vehicle frame to the world frame.
+
+Equations, named as in the paper (``../shared/seed/prml2_paper.tex.txt``):
+
+* Eq. (state_prediction), restricted to the plane (method.md)::
+
+      p     <- p + R(psi) v dt + 1/2 R(psi) a dt^2
+      psi   <- psi + omega dt
+      omega <- omega
+      v     <- v + a dt
+      a     <- a
+
+* its analytic Jacobian ``F`` (the paper's ``F_t``, planar);
+* prediction ``P <- F P F^T + Q``;
+* Eq. (measurement_vector): ``z = [v_x, v_y, a_x, a_y, omega_z]`` (schema order), ``H`` selects
+  :data:`prml2_edge.schema.Z_TO_EKF_INDEX`, ``R_t = diag(z_var)``;
+* Eq. (kalman stable): gain ``K = P H^T S^-1`` from a Cholesky solve, Joseph-form covariance.
+
+The torch twin :mod:`prml2_edge.training.ekf_torch` uses the same names and equations; a float64
+parity test runs both over thousands of steps.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from prml2_edge import schema
+from prml2_edge.schema import EkfState
+
+STATE_DIM = EkfState.DIM  # 8
+MEAS_DIM = schema.NUM_STATES  # 5
+_Z_IDX = np.asarray(schema.Z_TO_EKF_INDEX, dtype=np.intp)  # H as a selection of state indices
+_POS_IDX = np.arange(EkfState.POS.start, EkfState.POS.stop, dtype=np.intp)  # (2,)
+_PX, _PY = EkfState.POS_X.start, EkfState.POS_Y.start  # 0, 1
+_YAW = EkfState.YAW.start  # 2
+_OMEGA = EkfState.OMEGA_Z.start  # 3
+_VX, _VY = EkfState.VEL.start, EkfState.VEL.start + 1  # 4, 5
+_AX, _AY = EkfState.ACC.start, EkfState.ACC.start + 1  # 6, 7
+_VEL = EkfState.VEL
+_ACC = EkfState.ACC
+
+# Cholesky of the innovation covariance S: S = H P H^T + R_t is positive definite in exact
+# arithmetic (R_t > 0); rounding can break that when variances span many decades. Then a
+# diagonal jitter of JITTER_REL * eps * mean(diag S) is added and grown by JITTER_GROWTH until
+# the factorisation succeeds (both implementations, identically).
+JITTER_REL = 10.0
+JITTER_GROWTH = 100.0
+JITTER_TRIES = 6
+
+# Ekf.step: after a non-finite state the filter restarts from the last finite state with its
+# covariance diagonal (at least P0's) multiplied by this factor.
+RESET_COV_INFLATION = 10.0
+
+
+@dataclass(frozen=True)
+class ProcessNoise:
+    """Continuous-time process noise of the planar constant-acceleration model (tunable).
+
+    The model is driven by white noise whose power spectral densities (PSD) are:
+
+    * ``jerk_psd_m2ps5`` [m^2/s^5]: white jerk on ``(a_x, a_y)`` (each axis). Discretised as the
+      standard constant-acceleration block ``q_j [[dt^3/3, dt^2/2], [dt^2/2, dt]]`` on ``(v, a)``
+      per axis. 2.0 m^2/s^5 lets the acceleration change by ~1.4 m/s^2 within 1 s (1 sigma), a
+      brisk but ordinary driver input; the pseudo-measurements arrive every 20 ms and carry the
+      fast content.
+    * ``yaw_accel_psd_rad2ps3`` [rad^2/s^3]: white yaw acceleration on ``omega_z``, block
+      ``q_w [[dt^3/3, dt^2/2], [dt^2/2, dt]]`` on ``(psi, omega_z)``. 0.1 rad^2/s^3 lets the yaw
+      rate change by ~0.3 rad/s within 1 s (1 sigma), e.g. entering a roundabout.
+    * ``pos_psd_m2ps`` [m^2/s]: white velocity error on each position axis, ``q_p dt``: slip and
+      unmodelled motion not in the kinematic model. Position is never measured by the
+      pseudo-measurements, so this only sets how fast the reported position uncertainty grows
+      (and how much a GNSS fix moves the estimate); 0.01 m^2/s gives a 0.77 m (1 sigma) random
+      walk over 60 s on top of the uncertainty propagated from heading and velocity.
+
+    Cross-covariances between the world-frame position and the vehicle-frame velocity depend on
+    the heading; they are left out so ``Q`` is a constant, positive semi-definite matrix.
+    """
+
+    jerk_psd_m2ps5: float = 2.0
+    yaw_accel_psd_rad2ps3: float = 0.1
+    pos_psd_m2ps: float = 0.01
+
+    def matrix(self, dt_s: float = schema.DT_S) -> np.ndarray:
+        """Discrete process noise ``Q`` (8, 8) [SI units of the state, squared] for step ``dt_s`` [s]."""
+        if not (dt_s > 0.0):
+            raise ValueError(f"dt_s must be > 0, got {dt_s!r}")
+        for name in ("jerk_psd_m2ps5", "yaw_accel_psd_rad2ps3", "pos_psd_m2ps"):
+            if not (getattr(self, name) >= 0.0):
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        dt = float(dt_s)
+        q = np.zeros((STATE_DIM, STATE_DIM))
+        pos = np.arange(EkfState.POS.start, EkfState.POS.stop)
+        q[pos, pos] = self.pos_psd_m2ps * dt
+        blk = np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]])
+        yaw_omega = np.array([_YAW, _OMEGA])
+        q[np.ix_(yaw_omega, yaw_omega)] = self.yaw_accel_psd_rad2ps3 * blk
+        for axis in range(2):
+            va = np.array([_VEL.start + axis, _ACC.start + axis])
+            q[np.ix_(va, va)] = self.jerk_psd_m2ps5 * blk
+        return q
+
+
+@dataclass(frozen=True)
+class InitialStd:
+    """One-sigma initial uncertainty of each state component (tunable), SI units.
+
+    The defaults suit a filter started from a known pose (ground truth at a window start, a GNSS
+    fix) with dynamics from the first pseudo-measurement.
+    """
+
+    pos_m: float = 0.1
+    yaw_rad: float = 0.01  # ~0.6 deg
+    omega_radps: float = 0.05
+    vel_mps: float = 0.5
+    acc_mps2: float = 1.0
+
+    def matrix(self) -> np.ndarray:
+        """Diagonal ``P0`` (8, 8)."""
+        std = np.empty(STATE_DIM)
+        std[EkfState.POS] = self.pos_m
+        std[EkfState.YAW] = self.yaw_rad
+        std[EkfState.OMEGA_Z] = self.omega_radps
+        std[EkfState.VEL] = self.vel_mps
+        std[EkfState.ACC] = self.acc_mps2
+        if not np.all(std > 0.0):
+            raise ValueError("initial standard deviations must be > 0")
+        return np.diag(std**2)
+
+
+def default_process_noise(dt_s: float = schema.DT_S) -> np.ndarray:
+    """Default ``Q`` (8, 8) for step ``dt_s`` [s]: :class:`ProcessNoise` with its documented PSDs."""
+    return ProcessNoise().matrix(dt_s)
+
+
+def default_initial_covariance() -> np.ndarray:
+    """Default ``P0`` (8, 8): :class:`InitialStd` squared on the diagonal."""
+    return InitialStd().matrix()
+
+
+def measurement_matrix() -> np.ndarray:
+    """``H`` (5, 8): selects ``z = [v_x, v_y, a_x, a_y, omega_z]`` from the state (Eq. measurement_vector)."""
+    h = np.zeros((MEAS_DIM, STATE_DIM))
+    h[np.arange(MEAS_DIM), _Z_IDX] = 1.0
+    return h
+
+
+def wrap_angle(angle_rad: np.ndarray | float) -> np.ndarray | float:
+    """Wrap an angle [rad] to ``[-pi, pi)``."""
+    return (np.asarray(angle_rad) + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def rotation(psi_rad: float) -> np.ndarray:
+    """``R(psi)`` (2, 2): vehicle frame (x forward, y left) to world frame (x east, y north)."""
+    c, s = math.cos(psi_rad), math.sin(psi_rad)
+    return np.array([[c, -s], [s, c]])
+
+
+def _check_state(x: np.ndarray) -> np.ndarray:
+    x = np.asarray(x, dtype=np.float64)
+    if x.shape != (STATE_DIM,):
+        raise ValueError(f"state must have shape ({STATE_DIM},), got {x.shape}")
+    return x
+
+
+def process_model(x: np.ndarray, dt_s: float) -> np.ndarray:
+    """A-priori state ``f(x)`` (Eq. state_prediction, planar).
+
+    Parameters
+    ----------
+    x : (8,) state, layout :class:`prml2_edge.schema.EkfState`.
+    dt_s : step [s].
+
+    Returns
+    -------
+    (8,) predicted state; ``psi`` is not wrapped.
+    """
+    x = _check_state(x)
+    dt = float(dt_s)
+    c, s = math.cos(x[_YAW]), math.sin(x[_YAW])
+    # body-frame displacement d = v dt + a dt^2 / 2, then p += R(psi) d
+    dx = x[_VX] * dt + 0.5 * x[_AX] * dt * dt
+    dy = x[_VY] * dt + 0.5 * x[_AY] * dt * dt
+    out = x.copy()
+    out[_PX] = x[_PX] + (c * dx - s * dy)
+    out[_PY] = x[_PY] + (s * dx + c * dy)
+    out[_YAW] = x[_YAW] + x[_OMEGA] * dt
+    out[_VX] = x[_VX] + x[_AX] * dt
+    out[_VY] = x[_VY] + x[_AY] * dt
+    return out
+
+
+def process_jacobian(x: np.ndarray, dt_s: float) -> np.ndarray:
+    """Analytic Jacobian ``F = df/dx`` (8, 8) of :func:`process_model` (the paper's ``F_t``, planar).
+
+    Non-identity entries: ``dp/dpsi = dR/dpsi (v dt + a dt^2/2)``, ``dp/dv = R dt``,
+    ``dp/da = R dt^2/2``, ``dpsi/domega = dt``, ``dv/da = dt I``.
+    """
+    x = _check_state(x)
+    dt = float(dt_s)
+    c, s = math.cos(x[_YAW]), math.sin(x[_YAW])
+    dx = x[_VX] * dt + 0.5 * x[_AX] * dt * dt
+    dy = x[_VY] * dt + 0.5 * x[_AY] * dt * dt
+    f = np.eye(STATE_DIM)
+    f[_PX, _YAW] = -s * dx - c * dy
+    f[_PY, _YAW] = c * dx - s * dy
+    r = np.array([[c, -s], [s, c]])
+    f[EkfState.POS, _VEL] = r * dt
+    f[EkfState.POS, _ACC] = r * (0.5 * dt * dt)
+    f[_YAW, _OMEGA] = dt
+    f[_VX, _AX] = dt
+    f[_VY, _AY] = dt
+    return f
+
+
+def symmetrize(p: np.ndarray) -> np.ndarray:
+    """``(P + P^T) / 2``."""
+    return 0.5 * (p + p.T)
+
+
+def predict(x: np.ndarray, P: np.ndarray, Q: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """EKF prediction: ``x <- f(x)``, ``P <- F P F^T + Q`` (the paper's prediction step).
+
+    Parameters
+    ----------
+    x : (8,) a-posteriori state at t-1.
+    P : (8, 8) its covariance.
+    Q : (8, 8) process noise for ``dt_s``.
+    dt_s : step [s].
+
+    Returns
+    -------
+    x, P : a-priori state (8,) and covariance (8, 8) at t.
+    """
+    f = process_jacobian(x, dt_s)
+    x_new = process_model(x, dt_s)
+    p_new = f @ P @ f.T + Q
+    return x_new, symmetrize(p_new)
+
+
+def _cholesky(s: np.ndarray) -> np.ndarray:
+    """Lower Cholesky factor of ``s`` with diagonal jitter if rounding made it indefinite."""
+    try:
+        return np.linalg.cholesky(s)
+    except np.linalg.LinAlgError:
+        pass
+    eye = np.eye(s.shape[0])
+    scale = max(float(np.mean(np.abs(np.diag(s)))), np.finfo(np.float64).tiny)
+    jitter = JITTER_REL * np.finfo(np.float64).eps * scale
+    for _ in range(JITTER_TRIES):
+        try:
+            return np.linalg.cholesky(s + jitter * eye)
+        except np.linalg.LinAlgError:
+            jitter *= JITTER_GROWTH
+    raise np.linalg.LinAlgError("innovation covariance is not positive definite even with jitter")
+
+
+def _update_selected(
+    x: np.ndarray, P: np.ndarray, idx: np.ndarray, innovation: np.ndarray, meas_var: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Kalman update for a measurement that selects state components ``idx`` (Eq. kalman stable).
+
+    ``H`` is a selection, so ``H P = P[idx]`` and ``H P H^T = P[idx][:, idx]`` exactly.
+    """
+    hp = P[idx, :]  # (m, 8) = H P
+    s = hp[:, idx] + np.diag(meas_var)  # (m, m) innovation covariance S = H P H^T + R_t
+    chol = _cholesky(s)
+    # K^T = S^-1 H P via two triangular solves (no explicit inverse; S and P symmetric).
+    k_t = np.linalg.solve(chol.T, np.linalg.solve(chol, hp))  # (m, 8)
+    k = k_t.T  # (8, m)
+    x_new = x + k @ innovation
+    # Joseph form P = (I - K H) P (I - K H)^T + K R_t K^T. Unlike (I - K H) P it stays symmetric
+    # positive semi-definite under rounding and for a sub-optimal K (jitter, float32), which keeps
+    # long sequences and backpropagation through them stable. With H a selection:
+    #   A P = P - K (H P);  (A P) A^T = A P - (A P)[:, idx] K^T.
+    ap = P - k @ hp
+    p_new = ap - ap[:, idx] @ k_t + (k * meas_var) @ k_t
+    return x_new, symmetrize(p_new)
+
+
+def update(x: np.ndarray, P: np.ndarray, z: np.ndarray, z_var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """EKF update with a pseudo-measurement of the dynamic state (Eqs. measurement_vector, kalman stable).
+
+    Parameters
+    ----------
+    x : (8,) a-priori state.
+    P : (8, 8) a-priori covariance.
+    z : (5,) measurement ``[v_x, v_y, a_x, a_y, omega_z]`` [m/s, m/s^2, rad/s], vehicle frame.
+    z_var : (5,) its variances (``R_t = diag(z_var)``), each > 0.
+
+    Returns
+    -------
+    x, P : a-posteriori state (8,) and covariance (8, 8).
+    """
+    z = np.asarray(z, dtype=np.float64)
+    z_var = np.asarray(z_var, dtype=np.float64)
+    if z.shape != (MEAS_DIM,) or z_var.shape != (MEAS_DIM,):
+        raise ValueError(f"z and z_var must have shape ({MEAS_DIM},), got {z.shape} and {z_var.shape}")
+    return _update_selected(x, P, _Z_IDX, z - x[_Z_IDX], z_var)
+
+
+def update_pose(
+    x: np.ndarray,
+    P: np.ndarray,
+    pos_xy: np.ndarray,
+    pos_var: np.ndarray | float,
+    yaw_rad: float | None = None,
+    yaw_var: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fuse a pose fix (GNSS): position, optionally heading; same Cholesky/Joseph update.
+
+    Parameters
+    ----------
+    x, P : (8,), (8, 8) a-priori state and covariance.
+    pos_xy : (2,) position [m], world frame (x east, y north).
+    pos_var : scalar or (2,) position variance [m^2], > 0.
+    yaw_rad : heading [rad], counter-clockwise from east; any branch (the innovation is wrapped
+        to [-pi, pi), so the filter's unwrapped ``psi`` stays continuous).
+    yaw_var : heading variance [rad^2], > 0; required with ``yaw_rad``.
+    """
+    pos_xy = np.asarray(pos_xy, dtype=np.float64).reshape(2)
+    var = np.broadcast_to(np.asarray(pos_var, dtype=np.float64), (2,)).copy()
+    innovation = pos_xy - x[_POS_IDX]
+    idx = _POS_IDX
+    if yaw_rad is not None:
+        if yaw_var is None:
+            raise ValueError("yaw_var is required with yaw_rad")
+        idx = np.append(_POS_IDX, _YAW)
+        innovation = np.append(innovation, wrap_angle(float(yaw_rad) - x[_YAW]))
+        var = np.append(var, float(yaw_var))
+    if not np.all(var > 0.0):
+        raise ValueError("pose variances must be > 0")
+    return _update_selected(x, P, idx, innovation, var)
+
+
+class StepStatus(enum.IntEnum):
+    """Result of :meth:`Ekf.step` / :meth:`Ekf.fuse_pose` (the hot path never raises)."""
+
+    SUCCESS = 0  # predicted and updated
+    PREDICT_ONLY = 1  # no measurement given: predicted only
+    INPUT_INVALID = 2  # measurement given but non-finite, wrong shape or variance <= 0: predicted only
+    RESET = 3  # state became non-finite: restarted from the last finite state, covariance inflated
+
+
+class Ekf:
+    """Stateful planar EKF for the runtime and evaluation (one 50 Hz step per call).
+
+    Parameters
+    ----------
+    x0 : (8,) initial state (default zeros: at the origin, heading east, at rest).
+    P0 : (8, 8) initial covariance (default :func:`default_initial_covariance`).
+    Q : (8, 8) process noise for ``dt_s`` (default :func:`default_process_noise`).
+    dt_s : step [s].
+    """
+
+    def __init__(
+        self,
+        x0: np.ndarray | None = None,
+        P0: np.ndarray | None = None,
+        Q: np.ndarray | None = None,
+        dt_s: float = schema.DT_S,
+    ) -> None:
+        if not (dt_s > 0.0):
+            raise ValueError(f"dt_s must be > 0, got {dt_s!r}")
+        self.dt_s = float(dt_s)
+        self.Q = default_process_noise(self.dt_s) if Q is None else np.array(Q, dtype=np.float64)
+        if self.Q.shape != (STATE_DIM, STATE_DIM):
+            raise ValueError(f"Q must have shape ({STATE_DIM}, {STATE_DIM}), got {self.Q.shape}")
+        self.x: np.ndarray = np.zeros(STATE_DIM)
+        self.P: np.ndarray = default_initial_covariance()
+        self.n_resets = 0
+        self.reset(x0, P0)
+
+    def reset(self, x0: np.ndarray | None = None, P0: np.ndarray | None = None) -> None:
+        """Restart from ``x0`` (8,) / ``P0`` (8, 8) (defaults: zeros / :func:`default_initial_covariance`)."""
+        x = np.zeros(STATE_DIM) if x0 is None else _check_state(x0).copy()
+        p = default_initial_covariance() if P0 is None else np.array(P0, dtype=np.float64)
+        if p.shape != (STATE_DIM, STATE_DIM):
+            raise ValueError(f"P0 must have shape ({STATE_DIM}, {STATE_DIM}), got {p.shape}")
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(p))):
+            raise ValueError("x0 and P0 must be finite")
+        self.x, self.P = x, symmetrize(p)
+        self._P0 = self.P.copy()
+        self._last_good = (self.x.copy(), self.P.copy())
+
+    def _commit(self, x: np.ndarray, p: np.ndarray, status: StepStatus) -> StepStatus:
+        if np.all(np.isfinite(x)) and np.all(np.isfinite(p)):
+            self.x, self.P = x, p
+            self._last_good = (x.copy(), p.copy())
+            return status
+        x_good, p_good = self._last_good
+        self.x = x_good.copy()
+        self.P = np.diag(np.maximum(np.diag(p_good), np.diag(self._P0)) * RESET_COV_INFLATION)
+        self.n_resets += 1
+        return StepStatus.RESET
+
+    def step(self, z: np.ndarray | None = None, z_var: np.ndarray | None = None) -> StepStatus:
+        """Advance one step ``dt_s``: predict, then update with ``z`` (5,) / ``z_var`` (5,) if valid.
+
+        ``z = [v_x, v_y, a_x, a_y, omega_z]`` (schema order, vehicle frame), ``z_var`` its
+        variances. Never raises on bad data: see :class:`StepStatus`.
+        """
+        with np.errstate(all="ignore"):
+            x, p = predict(self.x, self.P, self.Q, self.dt_s)
+            if z is None and z_var is None:
+                return self._commit(x, p, StepStatus.PREDICT_ONLY)
+            zz = None if z is None else np.asarray(z, dtype=np.float64)
+            vv = None if z_var is None else np.asarray(z_var, dtype=np.float64)
+            valid = (
+                zz is not None
+                and vv is not None
+                and zz.shape == (MEAS_DIM,)
+                and vv.shape == (MEAS_DIM,)
+                and bool(np.all(np.isfinite(zz)))
+                and bool(np.all(np.isfinite(vv)))
+                and bool(np.all(vv > 0.0))
+            )
+            if not valid:
+                return self._commit(x, p, StepStatus.INPUT_INVALID)
+            try:
+                x, p = update(x, p, zz, vv)
+            except np.linalg.LinAlgError:
+                x = np.full(STATE_DIM, np.nan)  # cannot happen for finite P; handled as a reset
+            return self._commit(x, p, StepStatus.SUCCESS)
+
+    def fuse_pose(
+        self,
+        pos_xy: np.ndarray,
+        pos_var: np.ndarray | float,
+        yaw_rad: float | None = None,
+        yaw_var: float | None = None,
+    ) -> StepStatus:
+        """Fuse a pose fix at the current time (no prediction); see :func:`update_pose`."""
+        with np.errstate(all="ignore"):
+            try:
+                pos = np.asarray(pos_xy, dtype=np.float64).reshape(2)
+                var = np.broadcast_to(np.asarray(pos_var, dtype=np.float64), (2,))
+            except ValueError:
+                return StepStatus.INPUT_INVALID
+            if yaw_rad is not None:
+                if yaw_var is None or not (math.isfinite(yaw_rad) and math.isfinite(yaw_var) and yaw_var > 0.0):
+                    return StepStatus.INPUT_INVALID
+            if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(var)) and np.all(var > 0.0)):
+                return StepStatus.INPUT_INVALID
+            try:
+                x, p = update_pose(self.x, self.P, pos, var, yaw_rad, yaw_var)
+            except np.linalg.LinAlgError:
+                x, p = np.full(STATE_DIM, np.nan), self.P
+            return self._commit(x, p, StepStatus.SUCCESS)
+
+    @property
+    def pose(self) -> tuple[float, float, float]:
+        """``(p_x [m], p_y [m], psi [rad])``, world frame; ``psi`` unwrapped (see :func:`wrap_angle`)."""
+        return float(self.x[_PX]), float(self.x[_PY]), float(self.x[_YAW])
+
+    @property
+    def pose_std(self) -> tuple[float, float]:
+        """``(pos_std_m, yaw_std_rad)``: ``sqrt(var p_x + var p_y)`` (radial RMS) and ``sqrt(var psi)``."""
+        return float(math.sqrt(self.P[_PX, _PX] + self.P[_PY, _PY])), float(math.sqrt(self.P[_YAW, _YAW]))

@@ -1,0 +1,256 @@
+"""NumPy EKF (prml2_edge.ekf): model, Jacobian, update algebra, covariance health, step statuses."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from prml2_edge import schema
+from prml2_edge.ekf import numpy_ekf as ne
+from prml2_edge.ekf.numpy_ekf import Ekf, StepStatus
+from prml2_edge.schema import EkfState
+
+DT = schema.DT_S
+
+
+def random_state(rng: np.random.Generator) -> np.ndarray:
+    x = np.empty(EkfState.DIM)
+    x[EkfState.POS] = rng.uniform(-500.0, 500.0, 2)
+    x[EkfState.YAW] = rng.uniform(-20.0, 20.0)  # unwrapped
+    x[EkfState.OMEGA_Z] = rng.uniform(-1.5, 1.5)
+    x[EkfState.VEL] = rng.uniform(-30.0, 30.0, 2)
+    x[EkfState.ACC] = rng.uniform(-10.0, 10.0, 2)
+    return x
+
+
+def random_spd(rng: np.random.Generator, n: int, lo: float = 1e-3, hi: float = 10.0) -> np.ndarray:
+    q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    return (q * rng.uniform(lo, hi, n)) @ q.T
+
+
+def test_process_model_moves_along_heading() -> None:
+    x = np.zeros(EkfState.DIM)
+    x[EkfState.YAW] = math.pi / 2  # heading north
+    x[EkfState.VEL] = [10.0, 0.0]
+    x[EkfState.ACC] = [2.0, 0.0]
+    x[EkfState.OMEGA_Z] = 0.5
+    out = ne.process_model(x, DT)
+    assert out[0] == pytest.approx(0.0, abs=1e-12)
+    assert out[1] == pytest.approx(10.0 * DT + 0.5 * 2.0 * DT**2, rel=1e-12)
+    assert out[EkfState.YAW][0] == pytest.approx(math.pi / 2 + 0.5 * DT)
+    assert out[EkfState.VEL][0] == pytest.approx(10.0 + 2.0 * DT)
+    np.testing.assert_array_equal(out[EkfState.ACC], x[EkfState.ACC])
+    # left (vehicle +y) while heading north is world west (-x)
+    x[EkfState.VEL] = [0.0, 1.0]
+    x[EkfState.ACC] = 0.0
+    assert ne.process_model(x, DT)[0] == pytest.approx(-DT)
+
+
+def test_psi_stays_unwrapped() -> None:
+    x = np.zeros(EkfState.DIM)
+    x[EkfState.YAW] = 3.1
+    x[EkfState.OMEGA_Z] = 1.5
+    for _ in range(50):
+        x = ne.process_model(x, DT)
+    assert x[EkfState.YAW][0] == pytest.approx(3.1 + 1.5 * 50 * DT)
+    assert x[EkfState.YAW][0] > math.pi
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_jacobian_matches_finite_differences(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    x = random_state(rng)
+    dt = 0.02 if seed < 3 else 0.5  # also a long step, where the dt^2 terms matter
+    f = ne.process_jacobian(x, dt)
+    h = 1e-4  # central differences: truncation ~h^2, rounding ~eps |x| / h
+    num = np.empty_like(f)
+    for j in range(EkfState.DIM):
+        e = np.zeros(EkfState.DIM)
+        e[j] = h
+        num[:, j] = (ne.process_model(x + e, dt) - ne.process_model(x - e, dt)) / (2 * h)
+    np.testing.assert_allclose(f, num, rtol=0, atol=1e-7)
+
+
+def test_measurement_matrix_selects_schema_order() -> None:
+    h = ne.measurement_matrix()
+    assert h.shape == (schema.NUM_STATES, EkfState.DIM)
+    x = np.arange(EkfState.DIM, dtype=float)
+    np.testing.assert_array_equal(h @ x, x[list(schema.Z_TO_EKF_INDEX)])
+    assert schema.STATE_NAMES[schema.Z.OMEGA_Z] == "omega_z_radps"
+    assert EkfState.NAMES[schema.Z_TO_EKF_INDEX[schema.Z.OMEGA_Z]] == "omega_z_radps"
+
+
+def test_default_noise_matrices() -> None:
+    q = ne.default_process_noise(DT)
+    np.testing.assert_array_equal(q, q.T)
+    assert np.linalg.eigvalsh(q).min() >= 0.0
+    pn = ne.ProcessNoise()
+    ax = EkfState.ACC.start
+    assert q[ax, ax] == pytest.approx(pn.jerk_psd_m2ps5 * DT)
+    assert q[EkfState.VEL.start, ax] == pytest.approx(pn.jerk_psd_m2ps5 * DT**2 / 2)
+    assert q[0, 0] == pytest.approx(pn.pos_psd_m2ps * DT)
+    np.testing.assert_allclose(ne.ProcessNoise(jerk_psd_m2ps5=4.0).matrix(DT)[ax, ax], 2 * q[ax, ax])
+    p0 = ne.default_initial_covariance()
+    assert np.all(np.linalg.eigvalsh(p0) > 0)
+    with pytest.raises(ValueError):
+        ne.ProcessNoise(pos_psd_m2ps=-1.0).matrix(DT)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_update_equals_textbook_form(seed: int) -> None:
+    """Selection/Cholesky/Joseph update == K = P H^T inv(S), P = (I - K H) P (optimal gain)."""
+    rng = np.random.default_rng(seed)
+    x = random_state(rng)
+    p = random_spd(rng, EkfState.DIM)
+    z = rng.normal(size=5)
+    r = rng.uniform(0.01, 2.0, 5)
+    h = ne.measurement_matrix()
+    s = h @ p @ h.T + np.diag(r)
+    k = p @ h.T @ np.linalg.inv(s)
+    x_ref = x + k @ (z - h @ x)
+    p_ref = (np.eye(8) - k @ h) @ p
+    x_new, p_new = ne.update(x, p, z, r)
+    np.testing.assert_allclose(x_new, x_ref, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(p_new, p_ref, rtol=1e-9, atol=1e-10)
+
+
+def test_predict_covariance() -> None:
+    rng = np.random.default_rng(7)
+    x = random_state(rng)
+    p = random_spd(rng, EkfState.DIM)
+    q = ne.default_process_noise()
+    x1, p1 = ne.predict(x, p, q, DT)
+    f = ne.process_jacobian(x, DT)
+    np.testing.assert_allclose(x1, ne.process_model(x, DT))
+    np.testing.assert_allclose(p1, f @ p @ f.T + q, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(p1, p1.T)
+
+
+def test_update_pose_wraps_heading_innovation() -> None:
+    x = np.zeros(EkfState.DIM)
+    x[EkfState.YAW] = 6 * math.pi + 0.1  # three turns, unwrapped
+    p = ne.default_initial_covariance() * 100
+    x1, p1 = ne.update_pose(x, p, [3.0, -4.0], 1e-4, yaw_rad=0.05 - 2 * math.pi, yaw_var=1e-6)
+    assert x1[EkfState.YAW][0] == pytest.approx(6 * math.pi + 0.05, abs=1e-3)
+    np.testing.assert_allclose(x1[EkfState.POS], [3.0, -4.0], atol=1e-3)
+    assert p1[0, 0] < 1e-4 and p1[2, 2] < 1e-6
+    x2, _ = ne.update_pose(x, p, [3.0, -4.0], [1e-4, 1e-4])
+    assert x2[EkfState.YAW][0] == x[EkfState.YAW][0]
+    with pytest.raises(ValueError):
+        ne.update_pose(x, p, [0.0, 0.0], 0.0)
+
+
+def test_circle_dead_reckoning() -> None:
+    """Noise-free steady circle (a = 0 in the model's sense): 20 s, position within Euler error."""
+    v, w = 10.0, 0.2
+    ekf = Ekf(x0=np.array([0.0, 0.0, 0.0, w, v, 0.0, 0.0, 0.0]))
+    z_var = np.array([0.01, 0.01, 0.1, 0.1, 1e-4])
+    n = 1000
+    for _ in range(n):
+        assert ekf.step(np.array([v, 0.0, 0.0, 0.0, w]), z_var) is StepStatus.SUCCESS
+    t = n * DT
+    truth = np.array([v / w * math.sin(w * t), v / w * (1 - math.cos(w * t))])
+    px, py, psi = ekf.pose
+    # first-order (Euler) integration of the heading: error ~ v dt / 2 per radian turned
+    assert math.hypot(px - truth[0], py - truth[1]) < 0.3
+    assert psi == pytest.approx(w * t, abs=1e-9)
+    pos_std, yaw_std = ekf.pose_std
+    assert 0.0 < yaw_std < 0.1 and pos_std > ne.InitialStd().pos_m
+
+
+def test_step_statuses() -> None:
+    ekf = Ekf()
+    z = np.array([5.0, 0.0, 0.0, 0.0, 0.0])
+    r = np.full(5, 0.1)
+    assert ekf.step() is StepStatus.PREDICT_ONLY
+    assert ekf.step(z, r) is StepStatus.SUCCESS
+    x_before = ekf.x.copy()
+    for bad_z, bad_r in [
+        (np.array([np.nan, 0, 0, 0, 0.0]), r),
+        (z, np.array([0.1, 0.1, 0.0, 0.1, 0.1])),
+        (z, -r),
+        (z[:4], r[:4]),
+        (z, None),
+        (None, r),
+        (z, np.array([0.1, 0.1, np.inf, 0.1, 0.1])),
+    ]:
+        assert ekf.step(bad_z, bad_r) is StepStatus.INPUT_INVALID
+    # invalid input still predicts
+    assert ekf.x[EkfState.POS][0] > x_before[0]
+    assert ekf.fuse_pose([1.0, 2.0], 0.5) is StepStatus.SUCCESS
+    assert ekf.fuse_pose([1.0, np.nan], 0.5) is StepStatus.INPUT_INVALID
+    assert ekf.fuse_pose([1.0, 2.0], 0.5, yaw_rad=0.1) is StepStatus.INPUT_INVALID
+    assert ekf.fuse_pose([1.0, 2.0], [0.5, 0.5, 0.5]) is StepStatus.INPUT_INVALID
+    assert ekf.fuse_pose([1.0, 2.0], 0.5, yaw_rad=0.1, yaw_var=0.01) is StepStatus.SUCCESS
+    assert ekf.n_resets == 0
+
+
+def test_non_finite_state_resets_to_last_finite_pose() -> None:
+    ekf = Ekf()
+    r = np.full(5, 0.1)
+    for _ in range(20):
+        ekf.step(np.array([5.0, 0.0, 0.0, 0.0, 0.1]), r)
+    good_pose = ekf.pose
+    good_p = ekf.P.copy()
+    # a state corrupted from outside is caught by the next step
+    ekf.x[EkfState.VEL.start] = np.inf
+    assert ekf.step() is StepStatus.RESET
+    assert ekf.n_resets == 1
+    assert ekf.pose == good_pose
+    assert np.all(np.isfinite(ekf.P))
+    assert np.all(np.diag(ekf.P) >= np.diag(good_p) * ne.RESET_COV_INFLATION * (1 - 1e-12))
+    assert ekf.step(np.array([5.0, 0.0, 0.0, 0.0, 0.1]), r) is StepStatus.SUCCESS
+    # a huge but finite measurement with a tiny variance: the next prediction overflows
+    statuses = [ekf.step(np.full(5, 1e200), np.full(5, 1e-8)) for _ in range(3)]
+    assert StepStatus.RESET in statuses
+    assert ekf.n_resets >= 2
+    assert np.all(np.isfinite(ekf.x)) and np.all(np.isfinite(ekf.P))
+    assert ekf.step() in (StepStatus.PREDICT_ONLY, StepStatus.RESET)
+
+
+def test_reset_and_shape_checks() -> None:
+    ekf = Ekf()
+    ekf.step(np.ones(5), np.ones(5))
+    x0 = np.arange(8.0)
+    ekf.reset(x0, np.eye(8))
+    np.testing.assert_array_equal(ekf.x, x0)
+    np.testing.assert_array_equal(ekf.P, np.eye(8))
+    with pytest.raises(ValueError):
+        ekf.reset(np.zeros(7))
+    with pytest.raises(ValueError):
+        Ekf(Q=np.eye(5))
+    with pytest.raises(ValueError):
+        ne.update(np.zeros(8), np.eye(8), np.zeros(4), np.ones(4))
+
+
+log_var = st.floats(min_value=-8.0, max_value=6.0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    log_vars=st.lists(st.lists(log_var, min_size=5, max_size=5), min_size=1, max_size=6),
+    n_steps=st.integers(1, 200),
+    predict_only_every=st.integers(0, 7),
+)
+def test_covariance_stays_symmetric_positive_definite(
+    seed: int, log_vars: list[list[float]], n_steps: int, predict_only_every: int
+) -> None:
+    """Variances mixed from 1e-8 to 1e6, arbitrary legal states: P stays symmetric and PD."""
+    rng = np.random.default_rng(seed)
+    ekf = Ekf(x0=random_state(rng))
+    var_table = 10.0 ** np.asarray(log_vars)
+    for t in range(n_steps):
+        z = random_state(rng)[list(schema.Z_TO_EKF_INDEX)]
+        if predict_only_every and t % predict_only_every == 0:
+            status = ekf.step()
+        else:
+            status = ekf.step(z, var_table[t % len(var_table)])
+        assert status in (StepStatus.SUCCESS, StepStatus.PREDICT_ONLY)
+        np.testing.assert_array_equal(ekf.P, ekf.P.T)
+        np.linalg.cholesky(ekf.P)  # raises if not positive definite
+    assert np.all(np.isfinite(ekf.x))
