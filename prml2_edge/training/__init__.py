@@ -1,0 +1,1 @@
+"""Training side (torch): model, losses, two-stage training, checkpoints, DDP, ONNX export."""
