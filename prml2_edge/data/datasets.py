@@ -1,0 +1,302 @@
+"""Datasets: reproducible recipes of simulated drives, splits and normalisation statistics.
+
+On disk a dataset is a folder::
+
+    DIR/manifest.json        format, recipe, schema hash, fingerprint, norm stats, drive list
+    DIR/drives/<name>.csv    ReV-StED-schema CSVs (plus <name>.meta.json sidecars)
+
+``manifest = {"format": "prml2-dataset/1", "recipe": {...}, "schema_hash": ...,
+"fingerprint": sha256 of the drive CSV bytes in manifest order, "norm": {"mean": [9],
+"std": [9]}, "drives": [{"file": "drives/dry_000.csv", "family": ..., "mu": ...,
+"seed": ..., "role": "dry" | "snow", "minutes": ...}]}``.
+
+Splits (method.md "Data"): every dry drive is cut 70:10:20 into train/validation/test
+in time order; snow (low-mu) drives are only for testing generalisation. The
+normalisation statistics come from the training split only and are stored in the
+manifest. A folder of real ReV-StED CSVs without a manifest loads too: every file is a
+dry drive unless its ``.meta.json`` sidecar says ``"snow": true``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from prml2_edge import schema
+from prml2_edge.data.revsted import Drive, load_drive, write_drive_csv
+from prml2_edge.errors import ConfigError, DataError
+from prml2_edge.progress import Progress
+
+FORMAT = "prml2-dataset/1"
+SPLITS = ("train", "val", "test")
+SPLIT_FRACTIONS = (0.7, 0.1, 0.2)
+_DRIVE_KEYS = {"name", "family", "mu", "seed", "minutes", "role"}
+
+
+def _benchmark_recipe() -> dict:
+    """~2 h of dry/normal drives mixing the families, ~40 min of snow at mu 0.2-0.5."""
+    drives = []
+    families = ("longitudinal", "lateral", "mixed")
+    rng = np.random.default_rng(20240529)
+    for i in range(12):  # 12 x 10 min = 2 h
+        drives.append({"name": f"dry_{i:03d}", "family": families[i % 3], "mu": round(float(rng.uniform(0.8, 1.0)), 3),
+                       "seed": 1000 + i, "minutes": 10.0, "role": "dry"})
+    for i, mu in enumerate((0.2, 0.3, 0.4, 0.5)):  # 4 x 10 min = 40 min
+        drives.append({"name": f"snow_{i:03d}", "family": "snow", "mu": mu, "seed": 2000 + i, "minutes": 10.0,
+                       "role": "snow"})
+    return {"name": "benchmark", "drives": drives}
+
+
+def _small_recipe() -> dict:
+    """A few minutes: two dry drives and one snow drive (tests and quick tries)."""
+    return {"name": "small", "drives": [
+        {"name": "dry_000", "family": "mixed", "mu": 1.0, "seed": 11, "minutes": 2.5, "role": "dry"},
+        {"name": "dry_001", "family": "lateral", "mu": 0.9, "seed": 12, "minutes": 2.5, "role": "dry"},
+        {"name": "snow_000", "family": "snow", "mu": 0.3, "seed": 21, "minutes": 1.5, "role": "snow"},
+    ]}
+
+
+RECIPES = {"benchmark": _benchmark_recipe, "small": _small_recipe}
+
+
+def resolve_recipe(recipe: str | dict) -> dict:
+    """A recipe by name (``benchmark``, ``small``) or a dict ``{"name", "drives": [...]}``, validated."""
+    if isinstance(recipe, str):
+        if recipe not in RECIPES:
+            raise ConfigError(f"unknown recipe {recipe!r}; choose one of {', '.join(RECIPES)} or pass a dict")
+        return RECIPES[recipe]()
+    if not isinstance(recipe, dict) or not isinstance(recipe.get("drives"), list) or not recipe["drives"]:
+        raise ConfigError("a recipe dict needs a non-empty 'drives' list")
+    drives = []
+    for i, d in enumerate(recipe["drives"]):
+        unknown = sorted(set(d) - _DRIVE_KEYS)
+        if unknown:
+            raise ConfigError(f"recipe drive {i}: unknown key {unknown[0]!r} (allowed: {', '.join(sorted(_DRIVE_KEYS))})")
+        missing = [k for k in ("family", "mu", "seed", "minutes") if k not in d]
+        if missing:
+            raise ConfigError(f"recipe drive {i}: missing key(s) {', '.join(missing)}")
+        role = d.get("role", "snow" if d["family"] == "snow" else "dry")
+        if role not in ("dry", "snow"):
+            raise ConfigError(f"recipe drive {i}: role must be 'dry' or 'snow', got {role!r}")
+        drives.append({"name": d.get("name", f"{role}_{i:03d}"), "family": d["family"], "mu": float(d["mu"]),
+                       "seed": int(d["seed"]), "minutes": float(d["minutes"]), "role": role})
+    names = [d["name"] for d in drives]
+    if len(set(names)) != len(names):
+        raise ConfigError("recipe drive names must be unique")
+    return {"name": str(recipe.get("name", "custom")), "drives": drives}
+
+
+def _simulate_to_csv(spec: dict, path: str) -> str:
+    """Worker: simulate one recipe drive and write its CSV (top-level for pickling)."""
+    from prml2_edge.data.simulate import simulate_drive
+
+    drive = simulate_drive(spec["minutes"], spec["mu"], spec["seed"], spec["family"], name=spec["name"])
+    drive.meta["role"] = spec["role"]
+    write_drive_csv(drive, path)
+    return path
+
+
+def fingerprint_files(paths: list[Path]) -> str:
+    """SHA-256 over the bytes of ``paths`` in order (hex)."""
+    h = hashlib.sha256()
+    for p in paths:
+        with open(p, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+    return h.hexdigest()
+
+
+def split_drive(drive: Drive, fractions: tuple[float, ...] = SPLIT_FRACTIONS) -> dict[str, Drive]:
+    """Cut ``drive`` in time order into ``train``/``val``/``test`` parts of the given fractions."""
+    if len(fractions) != len(SPLITS) or any(f < 0 for f in fractions) or abs(sum(fractions) - 1.0) > 1e-9:
+        raise ValueError(f"fractions must be 3 non-negative numbers summing to 1, got {fractions}")
+    n = len(drive)
+    bounds = np.round(np.cumsum((0.0,) + tuple(fractions)) * n).astype(int)
+    parts = {}
+    for name, a, b in zip(SPLITS, bounds[:-1], bounds[1:], strict=True):
+        part = drive.slice(int(a), int(b))
+        part.name = f"{drive.name}:{name}"
+        part.meta["split"] = name
+        parts[name] = part
+    return parts
+
+
+def normalisation_stats(drives: list[Drive]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-signal mean and std (9,) over all samples of ``drives`` (pass the training split only).
+
+    The std is floored at 1e-6 so that a constant signal normalises to 0, not to inf.
+    """
+    if not drives:
+        raise DataError("no drives to compute normalisation statistics from")
+    data = np.concatenate([d.onboard for d in drives], axis=0)
+    mean = data.mean(axis=0)
+    std = np.maximum(data.std(axis=0), 1e-6)
+    return mean, std
+
+
+@dataclass
+class Dataset:
+    """A loaded dataset: drives, manifest and the training split's normalisation statistics (9,)."""
+
+    root: Path
+    manifest: dict
+    drives: list[Drive]
+    norm_mean: np.ndarray
+    norm_std: np.ndarray
+    fingerprint: str
+    _splits: dict[str, list[Drive]] = field(default_factory=dict, repr=False)
+
+    def roles(self) -> list[str]:
+        return [d.get("role", "dry") for d in self.manifest["drives"]]
+
+    def split(self, name: str) -> list[Drive]:
+        """``train``/``val``/``test``: 70:10:20 of each dry drive in time order; ``snow``: whole snow drives."""
+        if name not in (*SPLITS, "snow"):
+            raise ValueError(f"unknown split {name!r}; one of train, val, test, snow")
+        if name not in self._splits:
+            roles = self.roles()
+            if name == "snow":
+                self._splits[name] = [d for d, r in zip(self.drives, roles, strict=True) if r == "snow"]
+            else:
+                self._splits[name] = [split_drive(d)[name] for d, r in zip(self.drives, roles, strict=True)
+                                      if r == "dry"]
+        return self._splits[name]
+
+
+def generate_dataset(out_dir: str | Path, recipe: str | dict = "benchmark", workers: int = 2,
+                     progress: bool = True) -> Path:
+    """Simulate a recipe's drives into ``out_dir`` (``drives/*.csv`` + ``manifest.json``).
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        Target folder (created). Existing drive files of the same names are overwritten.
+    recipe : str or dict
+        ``"benchmark"`` (~2 h dry/normal + ~40 min snow), ``"small"`` (a few minutes) or a
+        dict ``{"name": ..., "drives": [{"family", "mu", "seed", "minutes", "role"?, "name"?}]}``.
+    workers : int
+        Worker processes (1 = in this process).
+    progress : bool
+        Progress bar over simulated minutes on stderr.
+
+    Returns
+    -------
+    Path
+        ``out_dir``. Same recipe, same bytes: the fingerprint is reproducible.
+    """
+    rec = resolve_recipe(recipe)
+    out = Path(out_dir)
+    (out / "drives").mkdir(parents=True, exist_ok=True)
+    specs = rec["drives"]
+    paths = [out / "drives" / f"{s['name']}.csv" for s in specs]
+    total_min = sum(s["minutes"] for s in specs)
+    bar = Progress(int(round(total_min * 60)), desc=f"simulate {rec['name']}", unit="s",
+                   enabled=None if progress else False)
+    try:
+        if workers <= 1:
+            for s, p in zip(specs, paths, strict=True):
+                _simulate_to_csv(s, str(p))
+                bar.update(int(round(s["minutes"] * 60)))
+        else:
+            # spawn: safe even when the caller has torch (or threads) loaded
+            ctx = multiprocessing.get_context("spawn")
+            with ProcessPoolExecutor(max_workers=min(workers, len(specs), os.cpu_count() or 1),
+                                     mp_context=ctx) as pool:
+                # longest drives first keeps both workers busy
+                order = sorted(range(len(specs)), key=lambda i: -specs[i]["minutes"])
+                futures = {pool.submit(_simulate_to_csv, specs[i], str(paths[i])): i for i in order}
+                from concurrent.futures import as_completed
+
+                for fut in as_completed(futures):
+                    fut.result()
+                    bar.update(int(round(specs[futures[fut]]["minutes"] * 60)))
+    finally:
+        bar.close()
+    drives = [load_drive(p) for p in paths]
+    roles = [s["role"] for s in specs]
+    train = [split_drive(d)["train"] for d, r in zip(drives, roles, strict=True) if r == "dry"]
+    mean, std = normalisation_stats(train)
+    manifest = {
+        "format": FORMAT,
+        "recipe": rec,
+        "schema_hash": schema.SCHEMA_HASH,
+        "signals": list(schema.SIGNAL_NAMES),
+        "fingerprint": fingerprint_files(paths),
+        "split_fractions": list(SPLIT_FRACTIONS),
+        "norm": {"mean": mean.tolist(), "std": std.tolist(), "from": "train split of the dry drives"},
+        "drives": [{"file": f"drives/{p.name}", "name": s["name"], "family": s["family"], "mu": s["mu"],
+                    "seed": s["seed"], "minutes": s["minutes"], "role": s["role"]}
+                   for s, p in zip(specs, paths, strict=True)],
+    }
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
+    return out
+
+
+def _manifest_for_folder(root: Path) -> dict:
+    """A manifest for a folder of CSVs without one (real ReV-StED files)."""
+    files = sorted(root.glob("*.csv")) or sorted((root / "drives").glob("*.csv"))
+    if not files:
+        raise DataError(f"{root}: no manifest.json and no *.csv files; run 'prml2 simulate' or add CSV files")
+    entries = []
+    for f in files:
+        meta_path = f.with_name(f.stem + ".meta.json")
+        meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+        role = meta.get("role") or ("snow" if meta.get("snow") else "dry")
+        entries.append({"file": str(f.relative_to(root)), "name": f.stem, "family": meta.get("family", "real"),
+                        "mu": meta.get("mu"), "seed": meta.get("seed"), "role": role})
+    return {"format": FORMAT, "recipe": {"name": "folder"}, "schema_hash": schema.SCHEMA_HASH, "drives": entries}
+
+
+def load_dataset(root: str | Path) -> Dataset:
+    """Load a dataset folder written by :func:`generate_dataset` (or a folder of CSVs).
+
+    Checks the format, the schema hash and the fingerprint of the drive files; any
+    mismatch is a :class:`DataError` saying how to fix it.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise DataError(f"{root}: dataset folder not found; create it with 'prml2 simulate --recipe small --out {root}'")
+    mpath = root / "manifest.json"
+    if mpath.is_file():
+        try:
+            manifest = json.loads(mpath.read_text())
+        except json.JSONDecodeError as exc:
+            raise DataError(f"{mpath}: not valid JSON ({exc.msg} at line {exc.lineno})") from exc
+        if manifest.get("format") != FORMAT:
+            raise DataError(f"{mpath}: format {manifest.get('format')!r} is not {FORMAT!r}; regenerate the dataset")
+        if manifest.get("schema_hash") != schema.SCHEMA_HASH:
+            raise DataError(
+                f"{mpath}: written for schema {manifest.get('schema_hash')}, this version uses {schema.SCHEMA_HASH}; "
+                "regenerate the dataset"
+            )
+    else:
+        manifest = _manifest_for_folder(root)
+    paths = [root / d["file"] for d in manifest["drives"]]
+    for p in paths:
+        if not p.is_file():
+            raise DataError(f"{mpath}: lists {p.relative_to(root)}, which is missing; regenerate the dataset")
+    fp = fingerprint_files(paths)
+    if "fingerprint" in manifest and manifest["fingerprint"] != fp:
+        raise DataError(f"{root}: drive files changed since manifest.json was written (fingerprint differs); "
+                        "regenerate the dataset")
+    drives = []
+    for p, entry in zip(paths, manifest["drives"], strict=True):
+        d = load_drive(p)
+        d.meta.setdefault("role", entry.get("role", "dry"))
+        drives.append(d)
+    ds = Dataset(root=root, manifest=manifest, drives=drives, norm_mean=np.zeros(schema.NUM_SIGNALS),
+                 norm_std=np.ones(schema.NUM_SIGNALS), fingerprint=fp)
+    if "norm" in manifest:
+        ds.norm_mean = np.asarray(manifest["norm"]["mean"], dtype=np.float64)
+        ds.norm_std = np.asarray(manifest["norm"]["std"], dtype=np.float64)
+    else:
+        ds.norm_mean, ds.norm_std = normalisation_stats(ds.split("train"))
+        manifest["fingerprint"] = fp
+    return ds
