@@ -1,0 +1,161 @@
+"""ONNX Runtime session for a PRML2 model: load, check its metadata, run one window.
+
+The session is configured for a small, predictable edge footprint: ``intra_op_num_threads``
+from the config (default 1), one inter-op thread, thread spinning off (an idle spinning
+thread would steal the CPU the CAN loop needs), all graph optimisations. Providers come
+from :func:`prml2_edge.service.providers.select_providers` (TensorRT -> CUDA -> CPU,
+whichever this onnxruntime offers).
+
+Graph contract (:mod:`prml2_edge.model_meta`): input ``onboard`` float32 (1, L, 9) raw SI;
+outputs ``z_mean``, ``z_var`` float32 (1, L - H, 5) before the physics guard.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from prml2_edge import schema
+from prml2_edge.errors import ModelError
+from prml2_edge.model_meta import METADATA_KEY, ModelMetadata
+from prml2_edge.resources import resource_path
+from prml2_edge.runtime.status import InferenceStatus
+
+log = logging.getLogger(__name__)
+
+
+def default_model_path() -> Path:
+    """The shipped default model (``export/default/prml2_edge.onnx``; ``prml2_edge/_data/model`` when installed).
+
+    Raises :class:`ModelError` when it is not there.
+    """
+    for parts in (("model", "prml2_edge.onnx"), ("export", "default", "prml2_edge.onnx")):
+        try:
+            return resource_path(*parts)
+        except Exception:
+            continue
+    raise ModelError("the shipped default model export/default/prml2_edge.onnx is missing from this installation; "
+                     "pass --model PATH (an ONNX file from 'prml2 export')")
+
+
+def _dim_ok(dim: object, want: int) -> bool:
+    return not isinstance(dim, int) or dim == want  # symbolic dims (strings/None) accept any size
+
+
+class OnnxModel:
+    """A PRML2 ONNX model in an onnxruntime session, checked against the runtime's schema.
+
+    Parameters
+    ----------
+    path:
+        ONNX file.
+    threads:
+        Intra-op threads (CPU provider).
+    providers:
+        Provider short names in order of preference (``tensorrt``, ``cuda``, ``cpu``).
+
+    After :meth:`step` returned ``SUCCESS``, :attr:`mean` and :attr:`var` hold the decoder
+    outputs (L - H, 5) float64 [z units], before the physics guard.
+    """
+
+    def __init__(self, path: str | Path, threads: int = 1, providers: Sequence[str] = ("cpu",),
+                 trt_cache_dir: str = "~/.cache/prml2/trt", trt_fp16: bool = False) -> None:
+        import onnxruntime as ort
+
+        from prml2_edge.service.providers import select_providers
+
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise ModelError(f"{self.path}: model file not found")
+        if threads < 1:
+            raise ModelError(f"threads must be >= 1, got {threads}")
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = int(threads)
+        opts.inter_op_num_threads = 1
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
+        opts.log_severity_level = 3
+        choice = select_providers(providers, trt_cache_dir=trt_cache_dir, trt_fp16=trt_fp16)
+        self.provider_choice = choice
+        try:
+            self.session = ort.InferenceSession(str(self.path), sess_options=opts, providers=choice.providers)
+        except Exception as exc:
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise ModelError(f"{self.path}: onnxruntime cannot load the model ({first[:200]})") from exc
+        self.providers = self.session.get_providers()
+        props = self.session.get_modelmeta().custom_metadata_map
+        if METADATA_KEY not in props:
+            raise ModelError(f"{self.path}: no PRML2 metadata (metadata_props key {METADATA_KEY!r}); "
+                             "export the model with 'prml2 export'")
+        self.metadata = ModelMetadata.from_json(props[METADATA_KEY], source=str(self.path))
+        self.metadata.check_schema(source=str(self.path))
+        if self.metadata.guard_in_graph:
+            raise ModelError(f"{self.path}: the physics guard is inside this graph; the runtime applies it itself "
+                             "(re-export with the guard outside)")
+        self.window_len = int(self.metadata.L)
+        self.decoder_len = int(self.metadata.L - self.metadata.H)
+        self._check_io()
+        self.input_name = self.metadata.input_name
+        self.output_names = list(self.metadata.output_names)
+        self.mean = np.zeros((self.decoder_len, schema.NUM_STATES))
+        self.var = np.ones((self.decoder_len, schema.NUM_STATES))
+        self.n_runs = 0
+        self.n_invalid = 0
+        self.n_errors = 0
+        self.last_error = ""
+
+    def _check_io(self) -> None:
+        meta = self.metadata
+        inputs = {i.name: i for i in self.session.get_inputs()}
+        outputs = {o.name: o for o in self.session.get_outputs()}
+        if list(inputs) != [meta.input_name]:
+            raise ModelError(f"{self.path}: graph inputs {list(inputs)} differ from the metadata's "
+                             f"[{meta.input_name!r}]")
+        shape = inputs[meta.input_name].shape
+        if len(shape) != 3 or not (_dim_ok(shape[1], meta.L) and _dim_ok(shape[2], schema.NUM_SIGNALS)):
+            raise ModelError(f"{self.path}: input {meta.input_name!r} has shape {shape}, want (1, {meta.L}, "
+                             f"{schema.NUM_SIGNALS})")
+        if inputs[meta.input_name].type != "tensor(float)":
+            raise ModelError(f"{self.path}: input type {inputs[meta.input_name].type}, want tensor(float)")
+        for name in meta.output_names:
+            if name not in outputs:
+                raise ModelError(f"{self.path}: graph lacks output {name!r} (has {sorted(outputs)})")
+            oshape = outputs[name].shape
+            if len(oshape) != 3 or not (_dim_ok(oshape[1], self.decoder_len) and _dim_ok(oshape[2], schema.NUM_STATES)):
+                raise ModelError(f"{self.path}: output {name!r} has shape {oshape}, want (1, {self.decoder_len}, "
+                                 f"{schema.NUM_STATES})")
+
+    def describe(self) -> str:
+        m = self.metadata
+        return (f"model {self.path.name}: preset {m.preset}, L={m.L}, H={m.H}, version {m.version}, "
+                f"providers {', '.join(self.providers)}")
+
+    def step(self, window: np.ndarray) -> InferenceStatus:
+        """Run one window (1, L, 9) float32 [SI]; never raises.
+
+        ``SUCCESS`` fills :attr:`mean`/:attr:`var`; ``INVALID_OUTPUT`` when the model returned a
+        non-finite mean or a non-positive/non-finite variance or a wrong shape; ``ERROR`` when
+        onnxruntime raised (message in :attr:`last_error`).
+        """
+        self.n_runs += 1
+        try:
+            mean, var = self.session.run(self.output_names, {self.input_name: window})
+        except Exception as exc:  # onnxruntime wraps every failure in its own types
+            self.n_errors += 1
+            self.last_error = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
+            return InferenceStatus.ERROR
+        want = (1, self.decoder_len, schema.NUM_STATES)
+        if mean.shape != want or var.shape != want:
+            self.n_invalid += 1
+            return InferenceStatus.INVALID_OUTPUT
+        if not (np.isfinite(mean).all() and np.isfinite(var).all() and (var > 0).all()):
+            self.n_invalid += 1
+            return InferenceStatus.INVALID_OUTPUT
+        self.mean[:] = mean[0]
+        self.var[:] = var[0]
+        return InferenceStatus.SUCCESS

@@ -1,0 +1,271 @@
+"""The runtime pipeline: wires the stages together; ``main()``-level code only builds and drives it.
+
+frame -> :class:`~prml2_edge.runtime.decode.FrameDecoder` -> :class:`~prml2_edge.runtime.assembler.Assembler`
+-> 50 Hz rows -> :class:`~prml2_edge.runtime.localizer.StreamingLocalizer` -> sinks.
+
+:meth:`Pipeline.step` takes one ``can.Message`` and never raises on bad data: every frame
+is counted once in :class:`~prml2_edge.runtime.stats.FrameStats`. Set-up problems (map vs
+DBC, model vs schema, no way to get an initial pose) raise one-line :class:`Prml2Error`\\ s
+in :meth:`Pipeline.build`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import can
+import numpy as np
+
+from prml2_edge import schema
+from prml2_edge.can.signal_map import SignalMap, load_map_and_dbc, shipped_map_path
+from prml2_edge.errors import ConfigError
+from prml2_edge.runtime.assembler import AssembledRow, Assembler
+from prml2_edge.runtime.decode import FrameDecoder
+from prml2_edge.runtime.inference import OnnxModel, default_model_path
+from prml2_edge.runtime.initial_pose import InitialPose
+from prml2_edge.runtime.latency import LatencyRecorder
+from prml2_edge.runtime.localizer import LocalizerConfig, StepOutput, StreamingLocalizer
+from prml2_edge.runtime.stats import FrameStats
+from prml2_edge.runtime.status import PoseStatus
+from prml2_edge.schema import EkfState
+
+log = logging.getLogger(__name__)
+
+SHIPPED_MAPS = ("prml2_onboard", "vw_mqb", "hyundai_2015_ccan")
+
+
+def resolve_map(name_or_path: str | Path) -> Path:
+    """A shipped map name (``prml2_onboard``, ``vw_mqb``, ``hyundai_2015_ccan``) or a path to a map TOML."""
+    text = str(name_or_path)
+    if text.endswith(".toml") or "/" in text or "\\" in text:
+        path = Path(text)
+        if not path.is_file():
+            raise ConfigError(f"{path}: signal map not found")
+        return path
+    try:
+        return shipped_map_path(text)
+    except Exception:
+        raise ConfigError(f"unknown signal map {text!r}; shipped maps: {', '.join(SHIPPED_MAPS)} "
+                          "(or give a path to a map .toml)") from None
+
+
+class MemorySink:
+    """Keeps every step's time, state, uncertainty and status in memory (tests, demo, evaluation)."""
+
+    def __init__(self) -> None:
+        self.t_s: list[float] = []
+        self.x: list[np.ndarray] = []
+        self.pos_std_m: list[float] = []
+        self.status: list[int] = []
+        self.model_used: list[bool] = []
+        self.gnss_outage: list[bool] = []
+
+    def step(self, out: StepOutput) -> None:
+        self.t_s.append(out.t_s)
+        self.x.append(out.x)
+        self.pos_std_m.append(out.pos_std_m)
+        self.status.append(int(out.status))
+        self.model_used.append(out.model_used)
+        self.gnss_outage.append(out.gnss_outage)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Per step: ``t_s``, ``x`` (N, 8), ``pos_std_m``, ``status``, ``model_used``, ``gnss_outage`` (N,)."""
+        return {"t_s": np.asarray(self.t_s), "x": np.asarray(self.x).reshape(-1, EkfState.DIM),
+                "pos_std_m": np.asarray(self.pos_std_m), "status": np.asarray(self.status, dtype=np.int8),
+                "model_used": np.asarray(self.model_used, dtype=bool),
+                "gnss_outage": np.asarray(self.gnss_outage, dtype=bool)}
+
+    def close(self) -> None:
+        pass
+
+
+@dataclass
+class _Window:
+    """Counters over one status interval (live mode)."""
+
+    t_wall: float
+    frames: int = 0
+    rows: int = 0
+    e2e_index: int = 0
+
+
+class Pipeline:
+    """Decoder -> assembler -> localiser -> sinks, with frame accounting and latency per stage."""
+
+    def __init__(self, signal_map: SignalMap, decoder: FrameDecoder, assembler: Assembler,
+                 localizer: StreamingLocalizer, sinks: Sequence = (), stats: FrameStats | None = None,
+                 latency: LatencyRecorder | None = None, dbc_path: Path | None = None) -> None:
+        self.signal_map = signal_map
+        self.decoder = decoder
+        self.assembler = assembler
+        self.localizer = localizer
+        self.sinks = list(sinks)
+        self.stats = stats if stats is not None else decoder.stats
+        self.latency = latency if latency is not None else (localizer.latency or LatencyRecorder())
+        self.dbc_path = dbc_path
+        self.last: StepOutput | None = None
+        self.rows = 0
+        self.first_t_s: float | None = None
+        self._t_wall0 = time.monotonic()
+        self._interval = _Window(self._t_wall0)
+        self._last_frame_wall = self._t_wall0
+
+    @classmethod
+    def build(cls, map: str | Path = "prml2_onboard", dbc: str | Path | None = None,
+              model: str | Path | OnnxModel | None = None, threads: int = 1, providers: Sequence[str] = ("cpu",),
+              stride: int = 1, mu: float = 1.0, stale_periods: float = 3.0,
+              initial_pose: InitialPose | None = None, sinks: Sequence = (),
+              localizer_config: LocalizerConfig | None = None, trt_cache_dir: str = "~/.cache/prml2/trt",
+              trt_fp16: bool = False) -> Pipeline:
+        """Load and cross-check map, DBC and model; refuse mismatches at start-up with what differs.
+
+        ``initial_pose`` None means: take it from the first GNSS fix on the bus, which needs a map
+        with a ``[gnss]`` table.
+        """
+        signal_map, db, dbc_path = load_map_and_dbc(resolve_map(map), dbc)
+        if initial_pose is None and signal_map.gnss is None:
+            raise ConfigError(f"signal map {signal_map.name!r} defines no GNSS fix message, so the initial pose "
+                              "cannot come from the bus: give --initial-pose X,Y,HEADING_DEG or --initial-pose-file")
+        if not isinstance(model, OnnxModel):
+            model = OnnxModel(model if model is not None else default_model_path(), threads=threads,
+                              providers=providers, trt_cache_dir=trt_cache_dir, trt_fp16=trt_fp16)
+        cfg = localizer_config or LocalizerConfig(stride=stride, mu=mu)
+        stats = FrameStats()
+        latency = LatencyRecorder()
+        decoder = FrameDecoder(signal_map, db, stats)
+        assembler = Assembler.for_map(signal_map, stale_periods=stale_periods, stats=stats)
+        localizer = StreamingLocalizer(model, cfg, initial_pose=initial_pose, latency=latency)
+        return cls(signal_map, decoder, assembler, localizer, sinks, stats, latency, dbc_path)
+
+    @property
+    def model(self):
+        return self.localizer.model
+
+    def step(self, msg: can.Message, recv_ns: int | None = None) -> list[StepOutput]:
+        """One frame in; the 50 Hz outputs it completed out (usually none or one). Never raises on bad data."""
+        t0 = time.perf_counter_ns()
+        recv_ns = t0 if recv_ns is None else recv_ns
+        frame = self.decoder.step(msg)
+        t1 = time.perf_counter_ns()
+        status, rows = self.assembler.step(frame, recv_ns)
+        t2 = time.perf_counter_ns()
+        self.stats.count(status, frame.message)
+        lat = self.latency
+        lat.add("decode", t1 - t0)
+        lat.add("assemble", t2 - t1)
+        self._interval.frames += 1
+        self._last_frame_wall = time.monotonic()
+        return [self._row(row) for row in rows] if rows else []
+
+    def finish(self) -> list[StepOutput]:
+        """End of stream: emit the last row(s) still held by the assembler."""
+        return [self._row(row) for row in self.assembler.flush()]
+
+    def _row(self, row: AssembledRow) -> StepOutput:
+        if self.first_t_s is None:
+            self.first_t_s = row.t_s
+        out = self.localizer.step(row.values, row.valid, row.t_s, row.gnss, row.discontinuity)
+        t_sinks = time.perf_counter_ns()
+        for sink in self.sinks:
+            sink.step(out)
+        t_done = time.perf_counter_ns()
+        self.latency.add("sinks", t_done - t_sinks)
+        if row.trigger_ns:
+            self.latency.add("end_to_end", t_done - row.trigger_ns)
+        self.last = out
+        self.rows += 1
+        self._interval.rows += 1
+        return out
+
+    def close(self) -> None:
+        for sink in self.sinks:
+            sink.close()
+
+    # ---- reporting -------------------------------------------------------------------------------
+
+    def status_line(self) -> str:
+        """One line for the periodic status: rates, staleness, latency, pose (live mode)."""
+        now = time.monotonic()
+        win = self._interval
+        dt = max(now - win.t_wall, 1e-9)
+        e2e = self.latency.stage_summary("end_to_end", since=win.e2e_index)
+        self._interval = _Window(now, e2e_index=self.latency.count("end_to_end"))
+        parts = [f"{win.frames / dt:.0f} frames/s", f"{win.rows / dt:.1f} rows/s"]
+        silent_s = now - self._last_frame_wall
+        if silent_s > 1.0:
+            parts.append(f"BUS SILENT {silent_s:.1f} s")
+        out = self.last
+        if out is not None:
+            invalid = [schema.SIGNALS[i].symbol for i in np.flatnonzero(~out.valid)]
+            parts.append("invalid: " + (",".join(invalid) if invalid else "none"))
+            age = self.assembler.last_row_t_s
+            if age is not None and np.isfinite(self.assembler.last_t_s).any():
+                max_age_ms = 1000.0 * float(np.max(age - self.assembler.last_t_s))
+                parts.append(f"max age {max_age_ms:.0f} ms")
+        if e2e.get("count"):
+            parts.append(f"e2e p50/p99 {e2e['p50_ms']:.2f}/{e2e['p99_ms']:.2f} ms")
+        if out is not None:
+            if out.status is PoseStatus.INITIALISING:
+                parts.append("INITIALISING (waiting for a GNSS fix)")
+            else:
+                parts.append(f"pose ({out.x[0]:.1f}, {out.x[1]:.1f}) m +-{out.pos_std_m:.1f} {out.status.name}"
+                             + (f" outage {out.outage_s:.0f} s" if out.gnss_outage else ""))
+        return " | ".join(parts)
+
+    def summary(self) -> dict:
+        """Everything worth reporting at the end of a run, as plain data."""
+        loc = self.localizer
+        model = loc.model
+        wall_s = time.monotonic() - self._t_wall0
+        data_s = (self.last.t_s - self.first_t_s) if (self.last is not None and self.first_t_s is not None) else 0.0
+        statuses = {s.name: loc.status_counts[s] for s in PoseStatus if loc.status_counts[s]}
+        last = None
+        if self.last is not None:
+            out = self.last
+            last = {"t_s": out.t_s, "x_m": out.x[0], "y_m": out.x[1], "psi_rad": out.x[2], "v_x_mps": out.x[4],
+                    "pos_std_m": out.pos_std_m, "status": out.status.name, "outage_s": out.outage_s}
+            last = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in last.items()}
+        sinks = {type(s).__name__: {k: getattr(s, k) for k in ("rows", "frames", "errors", "last_error")
+                                    if hasattr(s, k)} for s in self.sinks}
+        return {
+            "map": self.signal_map.name, "dbc": str(self.dbc_path) if self.dbc_path else self.signal_map.dbc,
+            "model": getattr(model, "describe", lambda: type(model).__name__)(),
+            "frames": self.stats.as_dict(),
+            "rows": self.rows, "grid_resyncs": self.assembler.resyncs,
+            "steps_by_status": statuses,
+            "inferences": loc.n_inferences, "inference_failures": loc.n_inference_failures,
+            "model_used_steps": loc.n_model_used,
+            "guard": {"predictions": loc.guard_stats.n_predictions, "fired": loc.guard_stats.n_fired,
+                      "fire_rate": loc.guard_stats.fire_rate},
+            "ekf_resets": loc.ekf.n_resets if loc.ekf is not None else 0,
+            "latency": self.latency.summary(),
+            "wall_s": wall_s, "data_s": data_s, "realtime_factor": (data_s / wall_s) if wall_s > 0 else None,
+            "last": last, "sinks": sinks,
+        }
+
+
+def run_source(pipeline: Pipeline, source, progress=None, should_stop=lambda: False, on_idle=None,
+               timeout_s: float = 0.1) -> None:
+    """Drive ``pipeline`` from ``source`` (``step(timeout) -> Message | None``; ``finished`` ends it).
+
+    ``progress`` (a :class:`prml2_edge.progress.Progress`) is advanced per frame; ``on_idle`` is
+    called after every frame and every timeout (status lines, watchdog); ``should_stop``
+    ends the loop early (signals).
+    """
+    while not should_stop():
+        msg = source.step(timeout_s)
+        if msg is not None:
+            recv_ns = time.perf_counter_ns()
+            pipeline.step(msg, recv_ns)
+            if progress is not None:
+                progress.update()
+        elif getattr(source, "finished", False):
+            break
+        if on_idle is not None:
+            on_idle()
+    pipeline.finish()

@@ -1,0 +1,76 @@
+"""Frame accounting: every frame that enters is counted as used, ignored or rejected (by reason).
+
+The counts add up: ``received == used + ignored + sum(rejected)``; :meth:`FrameStats.balanced`
+checks it. Per-signal counters say which signal values were dropped and why.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from prml2_edge import schema
+from prml2_edge.runtime.status import FrameStatus
+
+
+def _zeros() -> list[int]:
+    return [0] * schema.NUM_SIGNALS
+
+
+@dataclass
+class FrameStats:
+    """Counters of frames by outcome, and of individual signal values by outcome."""
+
+    received: int = 0
+    by_status: list[int] = field(default_factory=lambda: [0] * len(FrameStatus))
+    by_message: dict[str, int] = field(default_factory=dict)  # used frames per message name
+    signal_updates: list[int] = field(default_factory=_zeros)  # values applied to the hold
+    signal_out_of_range: list[int] = field(default_factory=_zeros)
+    signal_nonfinite: list[int] = field(default_factory=_zeros)
+    signal_invalid_flag: list[int] = field(default_factory=_zeros)  # quality bit said invalid
+    signal_late: list[int] = field(default_factory=_zeros)  # older than the held value: dropped
+    late_applied: int = 0  # frames older than the current 50 Hz row, applied to the hold value
+    counter_gaps: int = 0  # counter jumped forward by more than one (frames lost upstream)
+    gnss_fixes: int = 0
+    gnss_invalid: int = 0
+
+    def count(self, status: FrameStatus, message: str | None = None) -> None:
+        self.received += 1
+        self.by_status[status] += 1
+        if status is FrameStatus.USED and message is not None:
+            self.by_message[message] = self.by_message.get(message, 0) + 1
+
+    @property
+    def used(self) -> int:
+        return self.by_status[FrameStatus.USED]
+
+    @property
+    def ignored(self) -> int:
+        return self.by_status[FrameStatus.IGNORED]
+
+    @property
+    def rejected(self) -> int:
+        return sum(n for s, n in zip(FrameStatus, self.by_status, strict=True) if s.is_rejected)
+
+    def balanced(self) -> bool:
+        """True when every received frame is counted exactly once."""
+        return self.received == self.used + self.ignored + self.rejected
+
+    def rejected_by_reason(self) -> dict[str, int]:
+        return {s.name.removeprefix("REJECTED_").lower(): n
+                for s, n in zip(FrameStatus, self.by_status, strict=True) if s.is_rejected and n}
+
+    def as_dict(self) -> dict:
+        per_signal = {}
+        for i, name in enumerate(schema.SIGNAL_NAMES):
+            per_signal[name] = {
+                "updates": self.signal_updates[i], "out_of_range": self.signal_out_of_range[i],
+                "nonfinite": self.signal_nonfinite[i], "invalid_flag": self.signal_invalid_flag[i],
+                "late": self.signal_late[i],
+            }
+        return {
+            "received": self.received, "used": self.used, "ignored": self.ignored, "rejected": self.rejected,
+            "rejected_by_reason": self.rejected_by_reason(), "balanced": self.balanced(),
+            "late_applied": self.late_applied, "counter_gaps": self.counter_gaps,
+            "gnss_fixes": self.gnss_fixes, "gnss_invalid": self.gnss_invalid,
+            "used_by_message": dict(self.by_message), "signals": per_signal,
+        }
