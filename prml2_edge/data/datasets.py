@@ -78,7 +78,8 @@ def resolve_recipe(recipe: str | dict) -> dict:
     for i, d in enumerate(recipe["drives"]):
         unknown = sorted(set(d) - _DRIVE_KEYS)
         if unknown:
-            raise ConfigError(f"recipe drive {i}: unknown key {unknown[0]!r} (allowed: {', '.join(sorted(_DRIVE_KEYS))})")
+            allowed = ", ".join(sorted(_DRIVE_KEYS))
+            raise ConfigError(f"recipe drive {i}: unknown key {unknown[0]!r} (allowed: {allowed})")
         missing = [k for k in ("family", "mu", "seed", "minutes") if k not in d]
         if missing:
             raise ConfigError(f"recipe drive {i}: missing key(s) {', '.join(missing)}")
@@ -262,7 +263,7 @@ def load_dataset(root: str | Path) -> Dataset:
     """
     root = Path(root)
     if not root.is_dir():
-        raise DataError(f"{root}: dataset folder not found; create it with 'prml2 simulate --recipe small --out {root}'")
+        raise DataError(f"{root}: dataset folder not found; create one with 'prml2 simulate --recipe small --out DIR'")
     mpath = root / "manifest.json"
     if mpath.is_file():
         try:

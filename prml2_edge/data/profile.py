@@ -98,3 +98,30 @@ def speedometer_ratio(onboard_si: np.ndarray) -> float:
     moving = wheels > 1.0
     speedo = onboard_si[moving, schema.SIGNAL_BY_NAME["speedometer_mps"].index]
     return float(np.mean(speedo) / np.mean(wheels[moving]))
+
+
+def compare_profiles(real: list[SignalProfile], sim: list[SignalProfile]) -> list[dict]:
+    """Row per signal comparing a real and a simulated profile, with pass/fail per criterion.
+
+    Criteria: quantisation steps equal (within 2 %); median hold lengths within a factor
+    of 3; p5-p95 spans within a factor of 10 ("same order"). The real sample contains no
+    braking event, so for brake pressure the idle level (p5) is compared instead of the span.
+    """
+    rows = []
+    for r, s in zip(real, sim, strict=True):
+        step_ok = abs(s.step - r.step) <= 0.02 * r.step
+        hold_ratio = s.hold_median / r.hold_median
+        hold_ok = 1 / 3 <= hold_ratio <= 3
+        if r.name == "brake_pressure_bar":
+            range_ratio = (s.p5 + 0.5) / (r.p5 + 0.5)  # idle pressure, offset so 0 bar cannot divide
+        else:
+            range_ratio = (s.p95 - s.p5) / max(r.p95 - r.p5, 1e-9)
+        range_ok = 0.1 <= range_ratio <= 10
+        rows.append({"signal": r.name, "column": r.column, "unit": r.unit,
+                     "step_real": r.step, "step_sim": s.step, "step_ok": step_ok,
+                     "hold_median_real": r.hold_median, "hold_median_sim": s.hold_median,
+                     "hold_p90_real": r.hold_p90, "hold_p90_sim": s.hold_p90, "hold_ok": hold_ok,
+                     "change_real": r.change_fraction, "change_sim": s.change_fraction,
+                     "range_real": [r.p5, r.p95], "range_sim": [s.p5, s.p95], "range_ratio": range_ratio,
+                     "range_ok": range_ok})
+    return rows

@@ -1,0 +1,230 @@
+"""Encode a drive's onboard signals into a CAN log with a DBC and a signal map.
+
+Each message named by the map is sent at its signals' ``rate_hz`` (zero-order hold of
+the 50 Hz samples), with its counter incrementing modulo 2^bits, its checksum computed
+by the map's ``checksum_algorithm``, validity bits set to ``valid_value`` (cleared for
+a non-finite sample) and VW-style sign bits when the map has ``sign``. Optionally GNSS
+fix frames (10 Hz) for the first seconds give the runtime its initial pose.
+
+The output format follows the file extension through python-can's writers
+(``can.Logger``): ``.log`` candump, ``.asc``, ``.blf``, ``.csv``, ``.trc`` (and ``.gz``
+compressed variants).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import can
+import numpy as np
+
+from prml2_edge import schema
+from prml2_edge.can.checksum import checksum_function
+from prml2_edge.can.signal_map import SignalSpec, load_map_and_dbc, shipped_map_path
+from prml2_edge.errors import ConfigError
+from prml2_edge.progress import Progress
+
+GNSS_RATE_HZ = 10.0
+_SUPPORTED = (".log", ".asc", ".blf", ".csv", ".trc")
+
+
+@dataclass
+class _MessagePlan:
+    message: object  # cantools Message
+    rate_hz: float
+    specs: list[SignalSpec]
+    counter: str | None
+    checksum: str | None
+    checksum_fn: object
+    checksum_in_byte0: bool
+    defaults: dict[str, float]
+
+
+def _default_value(sig) -> float:
+    """Value for a DBC signal the map does not feed: a 'fixed/valid' choice if any, else 0 within range."""
+    if sig.choices:
+        for raw, name in sig.choices.items():
+            if "RTK_FIXED" in str(name).upper():
+                return float(raw)
+    value = float(sig.initial) if sig.initial is not None else 0.0
+    lo = sig.minimum if sig.minimum is not None else -math.inf
+    hi = sig.maximum if sig.maximum is not None else math.inf
+    return min(max(value, lo), hi)
+
+
+def _quantise_physical(sig, value: float) -> tuple[float, bool]:
+    """Clip ``value`` to the DBC signal's range and round it to its resolution; returns (value, clipped)."""
+    lo = sig.minimum if sig.minimum is not None else -math.inf
+    hi = sig.maximum if sig.maximum is not None else math.inf
+    clipped = not (lo <= value <= hi)
+    value = min(max(value, lo), hi)
+    scale = float(sig.scale) if sig.scale else 1.0
+    offset = float(sig.offset or 0.0)
+    raw = round((value - offset) / scale)
+    return raw * scale + offset, clipped
+
+
+def _writer_for(out_path: Path) -> can.io.generic.MessageWriter:
+    suffixes = [s.lower() for s in out_path.suffixes]
+    if len(suffixes) > 1 and suffixes[-1] == ".gz":
+        suffixes = suffixes[:-1]
+    ext = suffixes[-1] if suffixes else ""
+    if ext not in _SUPPORTED:
+        raise ConfigError(f"{out_path}: unsupported log format {ext or '(no extension)'!r}; "
+                          f"use one of {', '.join(_SUPPORTED)} (optionally .gz)")
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    return can.Logger(str(out_path))
+
+
+def encode_drive_to_log(drive, out_path: str | Path, signal_map_path: str | Path | None = None,
+                        dbc_path: str | Path | None = None, gnss_seconds: float = 0.0,
+                        progress: bool = False, channel: str = "vcan0") -> dict:
+    """Write ``drive``'s onboard signals as CAN frames to ``out_path``.
+
+    Parameters
+    ----------
+    drive : Drive
+        50 Hz onboard signals (N, 9), SI; ``pose_gt`` is needed for GNSS frames.
+    out_path : str or Path
+        Log file; the format follows the extension (see the module docstring).
+    signal_map_path : str or Path, optional
+        Signal map TOML (default: the shipped ``prml2_onboard`` map).
+    dbc_path : str or Path, optional
+        DBC overriding the one the map names.
+    gnss_seconds : float
+        Send 10 Hz GNSS fix frames (x east m, y north m, heading deg clockwise from north)
+        for the first ``gnss_seconds`` when the map has ``[gnss]`` and the drive has ``pose_gt``.
+    progress : bool
+        Progress bar on stderr.
+    channel : str
+        Channel name written to the log.
+
+    Returns
+    -------
+    dict
+        ``frames`` (total), ``per_message`` counts, ``gnss_frames``, ``clipped`` (values
+        outside a DBC signal's range, per signal), ``invalid`` (non-finite samples sent
+        with the validity bit cleared), ``duration_s``, ``out``, ``dbc``, ``map``.
+    """
+    map_path = Path(signal_map_path) if signal_map_path is not None else shipped_map_path("prml2_onboard")
+    smap, db, dbc_used = load_map_and_dbc(map_path, dbc_path)
+    out_path = Path(out_path)
+    n = len(drive.t_s)
+    if n == 0:
+        raise ConfigError(f"drive {drive.name!r} has no samples to encode")
+    t0 = float(drive.t_s[0])
+    duration_s = n * schema.DT_S
+
+    plans: list[_MessagePlan] = []
+    for msg_name in smap.message_names:
+        specs = [s for s in smap.signals if s.message == msg_name]
+        message = db.get_message_by_name(msg_name)
+        checks = smap.messages.get(msg_name)
+        counter = checks.counter if checks else None
+        checksum = checks.checksum if checks else None
+        fn = checksum_function(checks.checksum_algorithm) if checks and checks.checksum_algorithm else None
+        in_byte0 = False
+        if checksum is not None:
+            cs = message.get_signal_by_name(checksum)
+            in_byte0 = cs.start == 0 and cs.length == 8 and cs.byte_order == "little_endian"
+        fed = {s.signal for s in specs} | {s.valid for s in specs if s.valid} | {s.sign for s in specs if s.sign}
+        fed |= {x for x in (counter, checksum) if x}
+        defaults = {sig.name: _default_value(sig) for sig in message.signals if sig.name not in fed}
+        plans.append(_MessagePlan(message, max(s.rate_hz for s in specs), specs, counter, checksum, fn, in_byte0,
+                                  defaults))
+
+    # (timestamp, plan index or -1 for GNSS, sample index)
+    events: list[tuple[float, int, int]] = []
+    for pi, plan in enumerate(plans):
+        k = np.arange(int(math.floor(duration_s * plan.rate_hz - 1e-9)) + 1)
+        t_rel = k / plan.rate_hz
+        idx = np.minimum((t_rel / schema.DT_S + 1e-6).astype(np.int64), n - 1)
+        events.extend(zip((t0 + t_rel).tolist(), [pi] * len(k), idx.tolist(), strict=True))
+    gnss_frames = 0
+    if gnss_seconds > 0 and smap.gnss is not None and drive.pose_gt is not None:
+        k = np.arange(int(math.floor(min(gnss_seconds, duration_s) * GNSS_RATE_HZ - 1e-9)) + 1)
+        t_rel = k / GNSS_RATE_HZ
+        idx = np.minimum((t_rel / schema.DT_S + 1e-6).astype(np.int64), n - 1)
+        events.extend(zip((t0 + t_rel).tolist(), [-1] * len(k), idx.tolist(), strict=True))
+    events.sort(key=lambda e: (e[0], e[1]))
+
+    gnss_msg = db.get_message_by_name(smap.gnss.message) if smap.gnss is not None else None
+    counters = [0] * len(plans)
+    per_message = {p.message.name: 0 for p in plans}
+    clipped: dict[str, int] = {}
+    invalid: dict[str, int] = {}
+    onboard = np.asarray(drive.onboard, dtype=np.float64)
+    onboard_rows = onboard.tolist()
+    bar = Progress(len(events), desc="encode", unit="frames", enabled=None if progress else False)
+    writer = _writer_for(out_path)
+    try:
+        for i, (ts, pi, si) in enumerate(events):
+            if pi < 0:
+                data = _encode_gnss(gnss_msg, smap.gnss, drive.pose_gt[si])
+                frame_id, is_ext = gnss_msg.frame_id, gnss_msg.is_extended_frame
+                gnss_frames += 1
+            else:
+                plan = plans[pi]
+                msg = plan.message
+                values = dict(plan.defaults)
+                row = onboard_rows[si]
+                for spec in plan.specs:
+                    v_si = row[schema.SIGNAL_BY_NAME[spec.name].index]
+                    finite = math.isfinite(v_si)
+                    if not finite:
+                        invalid[spec.name] = invalid.get(spec.name, 0) + 1
+                        v_si = 0.0
+                    phys, sign_bit = spec.from_si(v_si)
+                    phys, was_clipped = _quantise_physical(msg.get_signal_by_name(spec.signal), phys)
+                    if was_clipped:
+                        clipped[spec.name] = clipped.get(spec.name, 0) + 1
+                    values[spec.signal] = phys
+                    if spec.sign:
+                        values[spec.sign] = sign_bit
+                    if spec.valid:
+                        values[spec.valid] = spec.valid_value if finite else 1 - spec.valid_value
+                if plan.counter:
+                    bits = msg.get_signal_by_name(plan.counter).length
+                    values[plan.counter] = counters[pi] % (1 << bits)
+                    counters[pi] += 1
+                if plan.checksum:
+                    values[plan.checksum] = 0
+                data = bytearray(msg.encode(values, scaling=True, strict=False))
+                if plan.checksum and plan.checksum_fn is not None:
+                    crc = plan.checksum_fn(msg.frame_id, bytes(data))
+                    if plan.checksum_in_byte0:
+                        data[0] = crc
+                    else:
+                        values[plan.checksum] = crc
+                        data = bytearray(msg.encode(values, scaling=True, strict=False))
+                frame_id, is_ext = msg.frame_id, msg.is_extended_frame
+                per_message[msg.name] += 1
+            writer.on_message_received(can.Message(timestamp=ts, arbitration_id=frame_id, is_extended_id=is_ext,
+                                                   data=bytes(data), channel=channel))
+            if i % 2000 == 1999:
+                bar.update(2000)
+        bar.update(len(events) % 2000)
+    finally:
+        writer.stop()
+        bar.close()
+    return {
+        "frames": len(events), "per_message": per_message, "gnss_frames": gnss_frames, "clipped": clipped,
+        "invalid": invalid, "duration_s": duration_s, "out": str(out_path), "dbc": str(dbc_used),
+        "map": str(map_path),
+    }
+
+
+def _encode_gnss(msg, gnss, pose_row: np.ndarray) -> bytes:
+    """GNSS fix frame: x east [m], y north [m], heading clockwise from north [deg, 0-360)."""
+    values = {sig.name: _default_value(sig) for sig in msg.signals}
+    x_m, y_m, psi_rad = (float(v) for v in pose_row)
+    values[gnss.x], _ = _quantise_physical(msg.get_signal_by_name(gnss.x), x_m)
+    values[gnss.y], _ = _quantise_physical(msg.get_signal_by_name(gnss.y), y_m)
+    if gnss.heading:
+        heading = (90.0 - math.degrees(psi_rad)) % 360.0
+        values[gnss.heading], _ = _quantise_physical(msg.get_signal_by_name(gnss.heading), heading)
+    if gnss.valid:
+        values[gnss.valid] = 1
+    return msg.encode(values, scaling=True, strict=False)
