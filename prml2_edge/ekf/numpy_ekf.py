@@ -51,11 +51,21 @@ _ACC = EkfState.ACC
 
 # Cholesky of the innovation covariance S: S = H P H^T + R_t is positive definite in exact
 # arithmetic (R_t > 0); rounding can break that when variances span many decades. Then a
-# diagonal jitter of JITTER_REL * eps * mean(diag S) is added and grown by JITTER_GROWTH until
-# the factorisation succeeds (both implementations, identically).
+# diagonal jitter of JITTER_REL * eps * mean|diag S| is added and grown by JITTER_GROWTH until
+# the factorisation succeeds, as long as it stays below JITTER_MAX_REL * mean|diag S| (both
+# implementations, identically; see cholesky_jittered).
 JITTER_REL = 10.0
 JITTER_GROWTH = 100.0
-JITTER_TRIES = 6
+JITTER_MAX_REL = 1.0
+
+
+def jitter_schedule(eps: float) -> list[float]:
+    """Relative jitters tried in turn for a dtype with machine epsilon ``eps`` (8 for float64, 3 for float32)."""
+    rel, out = JITTER_REL * eps, []
+    while rel <= JITTER_MAX_REL:
+        out.append(rel)
+        rel *= JITTER_GROWTH
+    return out
 
 # Ekf.step: after a non-finite state the filter restarts from the last finite state with its
 # covariance diagonal (at least P0's) multiplied by this factor.
@@ -186,16 +196,11 @@ def process_model(x: np.ndarray, dt_s: float) -> np.ndarray:
     """
     x = _check_state(x)
     dt = float(dt_s)
-    c, s = math.cos(x[_YAW]), math.sin(x[_YAW])
-    # body-frame displacement d = v dt + a dt^2 / 2, then p += R(psi) d
-    dx = x[_VX] * dt + 0.5 * x[_AX] * dt * dt
-    dy = x[_VY] * dt + 0.5 * x[_AY] * dt * dt
+    rd = rotation(x[_YAW]) @ (x[_VEL] * dt + x[_ACC] * (0.5 * dt * dt))  # world-frame displacement R(psi) d
     out = x.copy()
-    out[_PX] = x[_PX] + (c * dx - s * dy)
-    out[_PY] = x[_PY] + (s * dx + c * dy)
+    out[EkfState.POS] = x[EkfState.POS] + rd
     out[_YAW] = x[_YAW] + x[_OMEGA] * dt
-    out[_VX] = x[_VX] + x[_AX] * dt
-    out[_VY] = x[_VY] + x[_AY] * dt
+    out[_VEL] = x[_VEL] + x[_ACC] * dt
     return out
 
 
@@ -207,13 +212,11 @@ def process_jacobian(x: np.ndarray, dt_s: float) -> np.ndarray:
     """
     x = _check_state(x)
     dt = float(dt_s)
-    c, s = math.cos(x[_YAW]), math.sin(x[_YAW])
-    dx = x[_VX] * dt + 0.5 * x[_AX] * dt * dt
-    dy = x[_VY] * dt + 0.5 * x[_AY] * dt * dt
+    r = rotation(x[_YAW])
+    rd = r @ (x[_VEL] * dt + x[_ACC] * (0.5 * dt * dt))  # R d
     f = np.eye(STATE_DIM)
-    f[_PX, _YAW] = -s * dx - c * dy
-    f[_PY, _YAW] = c * dx - s * dy
-    r = np.array([[c, -s], [s, c]])
+    f[_PX, _YAW] = -rd[1]  # dR/dpsi d = (-(R d)_y, (R d)_x)
+    f[_PY, _YAW] = rd[0]
     f[EkfState.POS, _VEL] = r * dt
     f[EkfState.POS, _ACC] = r * (0.5 * dt * dt)
     f[_YAW, _OMEGA] = dt
@@ -247,21 +250,27 @@ def predict(x: np.ndarray, P: np.ndarray, Q: np.ndarray, dt_s: float) -> tuple[n
     return x_new, symmetrize(p_new)
 
 
-def _cholesky(s: np.ndarray) -> np.ndarray:
-    """Lower Cholesky factor of ``s`` with diagonal jitter if rounding made it indefinite."""
+def cholesky_jittered(s: np.ndarray) -> np.ndarray:
+    """Lower Cholesky factor of ``s`` (m, m), adding diagonal jitter if rounding broke definiteness.
+
+    The jitters of :func:`jitter_schedule` (times ``mean|diag s|``) are tried in turn; if none
+    succeeds (``s`` far from positive definite) the off-diagonal is dropped (``sqrt(diag s)``), so
+    the result is finite for any finite ``s``. The torch twin does the same per batch element.
+    """
     try:
         return np.linalg.cholesky(s)
     except np.linalg.LinAlgError:
         pass
     eye = np.eye(s.shape[0])
-    scale = max(float(np.mean(np.abs(np.diag(s)))), np.finfo(np.float64).tiny)
-    jitter = JITTER_REL * np.finfo(np.float64).eps * scale
-    for _ in range(JITTER_TRIES):
+    diag = np.diag(s)
+    tiny = np.finfo(np.float64).tiny
+    scale = max(float(np.mean(np.abs(diag))), tiny)
+    for rel in jitter_schedule(float(np.finfo(np.float64).eps)):
         try:
-            return np.linalg.cholesky(s + jitter * eye)
+            return np.linalg.cholesky(s + (rel * scale) * eye)
         except np.linalg.LinAlgError:
-            jitter *= JITTER_GROWTH
-    raise np.linalg.LinAlgError("innovation covariance is not positive definite even with jitter")
+            pass
+    return np.diag(np.sqrt(np.maximum(diag, tiny)))
 
 
 def _update_selected(
@@ -273,7 +282,7 @@ def _update_selected(
     """
     hp = P[idx, :]  # (m, 8) = H P
     s = hp[:, idx] + np.diag(meas_var)  # (m, m) innovation covariance S = H P H^T + R_t
-    chol = _cholesky(s)
+    chol = cholesky_jittered(s)
     # K^T = S^-1 H P via two triangular solves (no explicit inverse; S and P symmetric).
     k_t = np.linalg.solve(chol.T, np.linalg.solve(chol, hp))  # (m, 8)
     k = k_t.T  # (8, m)
