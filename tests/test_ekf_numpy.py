@@ -254,3 +254,16 @@ def test_covariance_stays_symmetric_positive_definite(
         np.testing.assert_array_equal(ekf.P, ekf.P.T)
         np.linalg.cholesky(ekf.P)  # raises if not positive definite
     assert np.all(np.isfinite(ekf.x))
+
+
+def test_edge_modules_import_without_torch() -> None:
+    """The runtime side (EKF, guard) must not need torch."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; sys.modules['torch'] = None\n"
+        "import prml2_edge.ekf, prml2_edge.guard\n"
+        "assert 'torch' not in [m.split('.')[0] for m in sys.modules if sys.modules[m] is not None]\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
