@@ -37,8 +37,8 @@ class Signal:
 
     ``min``/``max`` are the physical range [unit] beyond which a decoded value is
     rejected as implausible. ``revsted_scale`` converts the ReV-StED CSV column
-    (``revsted_unit``) to ``unit``; ``revsted_step`` is the quantisation step
-    measured on ``OBD_Sample.csv`` [unit].
+    (``revsted_unit``) to ``unit`` (negative where the column's sign convention differs);
+    ``revsted_step`` is the quantisation step measured on ``OBD_Sample.csv`` [unit].
     """
 
     index: int
@@ -67,8 +67,10 @@ SIGNALS: tuple[Signal, ...] = (
          -14.0, 14.0, "SW_pos_obd", "deg", DEG_TO_RAD, 0.481 * DEG_TO_RAD),
     _sig(2, "yaw_rate_radps", "psi_dot", "yaw rate, counter-clockwise positive", "rad/s", 50.0,
          -2.5, 2.5, "Yawrate_obd", "deg/s", DEG_TO_RAD, 1.28 * DEG_TO_RAD),
+    # LatAcc_obd is right-positive: in OBD_Sample.csv it reads +2.2 m/s^2 in a right turn
+    # (yaw rate -36 deg/s, steering -454 deg, right wheels slower), hence the scale -1.
     _sig(3, "lat_accel_mps2", "a_y", "lateral acceleration, left positive", "m/s^2", 50.0,
-         -15.0, 15.0, "LatAcc_obd", "m/s^2", 1.0, 0.075),
+         -15.0, 15.0, "LatAcc_obd", "m/s^2", -1.0, 0.075),
     _sig(4, "brake_pressure_bar", "p_br", "brake master cylinder pressure", "bar", 50.0,
          -10.0, 250.0, "brake_pressure_obd", "bar", 1.0, 0.182),
     _sig(5, "wheel_speed_fl_mps", "v_fl", "wheel speed front left", "m/s", 100.0,

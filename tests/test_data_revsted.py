@@ -36,7 +36,8 @@ def test_real_obd_sample_loads_onboard_only(shared_dir):
     assert drive.onboard[0, idx["steering_wheel_angle_rad"]] == pytest.approx(np.radians(54.863))
     assert drive.onboard[0, idx["yaw_rate_radps"]] == pytest.approx(np.radians(6.4))
     assert drive.onboard[0, idx["wheel_speed_fl_mps"]] == pytest.approx(19.55 / 3.6)
-    assert drive.onboard[0, idx["lat_accel_mps2"]] == pytest.approx(-0.675)
+    # LatAcc_obd is right-positive in ReV-StED; the schema is left-positive (see schema.py)
+    assert drive.onboard[0, idx["lat_accel_mps2"]] == pytest.approx(0.675)
     with pytest.raises(DataError, match="ground truth required"):
         load_drive(shared_dir / "data/revsted/OBD_Sample.csv", require_ground_truth=True)
 

@@ -42,12 +42,15 @@ from prml2_edge.errors import DataError
 
 TIME_COLUMN = "INS_time_sec"
 # Ground truth z (schema.STATES order): (column, scale to SI).
+# The ADMA INS reports in its own frame: x forward, y RIGHT, z DOWN (so yaw rate is
+# clockwise positive: in ADMA_data_sample.csv rate_hor_z > 0 while ins_yaw, clockwise
+# from north, increases). The schema's vehicle frame is y left, z up, hence the signs.
 Z_COLUMNS: tuple[tuple[str, float], ...] = (
     ("INS_velCOG_hor_x", 1.0),  # m/s
-    ("INS_velCOG_hor_y", 1.0),  # m/s
+    ("INS_velCOG_hor_y", -1.0),  # m/s, right-positive -> left-positive
     ("acc_hor_x", schema.G_MPS2),  # g -> m/s^2
-    ("acc_hor_y", schema.G_MPS2),  # g -> m/s^2
-    ("rate_hor_z", schema.DEG_TO_RAD),  # deg/s -> rad/s
+    ("acc_hor_y", -schema.G_MPS2),  # g, right-positive -> m/s^2 left-positive
+    ("rate_hor_z", -schema.DEG_TO_RAD),  # deg/s clockwise-positive -> rad/s counter-clockwise
 )
 POSE_COLUMNS: tuple[str, ...] = ("ins_pos_rel_x", "ins_pos_rel_y", "ins_yaw")  # m east, m north, deg cw from north
 MAX_HELD_NONFINITE = 5  # rows: longer runs of non-finite values are an error, not a repair
