@@ -12,6 +12,12 @@ decoder whose queries are the last L - H steps and which attends to the encoder 
 linear head giving the normalised mean and a softplus variance with a floor; both are
 de-normalised with the training split's z statistics (buffers) so the outputs are SI.
 
+One addition to the paper's description: a linear skip from each decoder step's normalised
+inputs to its normalised mean. The final LayerNorm makes the transformer's output depend on
+the inputs' scale only non-linearly, so an exact linear relation such as v_x ~ mean wheel
+speed takes many steps to learn; with the skip the transformer learns the correction to it
+(:meth:`Prml2Model.init_skip` starts it at the least-squares fit on the training split).
+
 The attention is our own small module (no ``nn.MultiheadAttention`` fast path): fused
 ``scaled_dot_product_attention`` in training, written out as MatMul/Softmax while exporting, so
 that the graph exports to ONNX with a fixed shape and the same numbers in onnxruntime.
@@ -160,10 +166,31 @@ class Prml2Model(nn.Module):
         self.enc_norm = nn.LayerNorm(d)
         self.dec_norm = nn.LayerNorm(d)
         self.head = nn.Linear(d, 2 * cfg.num_states)
+        # linear skip from each decoder step's normalised inputs to its normalised mean (zero at start)
+        self.skip = nn.Linear(cfg.num_signals, cfg.num_states)
         with torch.no_grad():
+            self.skip.weight.zero_()
+            self.skip.bias.zero_()
             self.head.weight.mul_(0.1)
             self.head.bias.zero_()
             self.head.bias[cfg.num_states:] = _SOFTPLUS_ONE  # start at unit normalised variance
+
+    @torch.no_grad()
+    def init_skip(self, onboard_rows: np.ndarray, z_rows: np.ndarray, ridge: float = 1e-3) -> None:
+        """Set the linear skip to the ridge-regression fit of normalised z on normalised inputs.
+
+        ``onboard_rows`` (N, 9) [SI] and ``z_rows`` (N, 5) [SI] are training samples. The
+        transformer then starts from (and learns the correction to) the best per-step linear map,
+        which the few hundred optimizer steps of a CPU budget would not reach from zero.
+        """
+        x = (np.asarray(onboard_rows, np.float64) - self.in_mean.double().numpy()) / self.in_std.double().numpy()
+        y = (np.asarray(z_rows, np.float64) - self.z_mean.double().numpy()) / self.z_std.double().numpy()
+        ok = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(y), axis=1)
+        x1 = np.concatenate([x[ok], np.ones((int(ok.sum()), 1))], axis=1)  # (N, 10)
+        gram = x1.T @ x1 + ridge * len(x1) * np.diag([1.0] * x.shape[1] + [0.0])
+        coef = np.linalg.solve(gram, x1.T @ y[ok])  # (10, 5)
+        self.skip.weight.copy_(torch.as_tensor(coef[:-1].T, dtype=torch.float32))
+        self.skip.bias.copy_(torch.as_tensor(coef[-1], dtype=torch.float32))
 
     def forward_normalised(self, onboard: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean and variance in normalised z units: each (B, L - H, 5)."""
@@ -178,7 +205,7 @@ class Prml2Model(nn.Module):
         for layer in self.decoder:
             dec = layer(dec, memory)
         out = self.head(self.dec_norm(dec))  # (B, L-H, 10)
-        mean_n = out[..., : cfg.num_states]
+        mean_n = out[..., : cfg.num_states] + self.skip(x[:, cfg.encoder_len :])  # (B, L-H, 5)
         var_n = F.softplus(out[..., cfg.num_states :]) + cfg.var_floor
         return mean_n, var_n
 

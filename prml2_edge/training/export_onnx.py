@@ -1,0 +1,186 @@
+"""Export a trained checkpoint to ONNX for the edge runtime (contract: :mod:`prml2_edge.model_meta`).
+
+The graph takes ``onboard`` float32 (1, L, 9) raw SI (normalisation is inside the graph) and
+returns ``z_mean`` and ``z_var`` float32 (1, L - H, 5), before the physics guard (the guard runs
+in NumPy at runtime so the friction coefficient can be set there). The
+:class:`~prml2_edge.model_meta.ModelMetadata` JSON is stored under the ``metadata_props`` key
+``"prml2"``. The legacy TorchScript-based exporter (``dynamo=False``) is used: it gives a clean,
+fixed-shape graph at opset 17 that onnxruntime runs with the same numbers as torch (checked by
+:func:`parity`).
+
+``quantize_int8`` applies onnxruntime's dynamic quantisation (int8 weights of the MatMul/Gemm
+layers); :func:`compare_int8` measures what it costs in z RMSE on validation windows.
+"""
+
+from __future__ import annotations
+
+import io
+import warnings
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from prml2_edge import __version__, schema
+from prml2_edge.errors import ModelError
+from prml2_edge.model_meta import INPUT_NAME, METADATA_KEY, OUTPUT_NAMES, ModelMetadata
+from prml2_edge.training.model import Prml2Model
+
+OPSET = 17
+
+
+def metadata_for(model: Prml2Model, ckpt: dict[str, Any], *, quantized: bool = False) -> ModelMetadata:
+    """The :class:`ModelMetadata` of a checkpoint's model (process noise Q from the NumPy EKF defaults)."""
+    from prml2_edge.ekf.numpy_ekf import default_process_noise
+
+    train_cfg = dict(ckpt.get("train_config", {}))
+    metrics = ckpt.get("metrics", {})
+    training = {
+        "epochs": train_cfg.get("epochs"),
+        "epochs_completed": ckpt.get("epoch"),
+        "finetune": train_cfg.get("finetune"),
+        "pretrain_epochs": None,
+        "seed": train_cfg.get("seed"),
+        "batch_size": train_cfg.get("batch_size"),
+        "lr": train_cfg.get("lr"),
+        "window_stride": train_cfg.get("window_stride"),
+        "beta": train_cfg.get("beta"),
+        "stage": ckpt.get("stage"),
+        "code_version": ckpt.get("code_version"),
+        "val_objective": metrics.get("val_objective"),
+        "int8": quantized,
+    }
+    try:
+        from prml2_edge.training.presets import train_config_from_dict
+
+        training["pretrain_epochs"] = train_config_from_dict(train_cfg).pretrain_epochs()
+    except Exception:  # noqa: BLE001 - metadata stays exportable for an older train config
+        training.pop("pretrain_epochs")
+    return ModelMetadata(
+        version=__version__,
+        preset=str(ckpt.get("preset", "unknown")),
+        norm_mean=[float(v) for v in model.in_mean.tolist()],
+        norm_std=[float(v) for v in model.in_std.tolist()],
+        dataset_fingerprint=str(ckpt.get("dataset_fingerprint", "")),
+        config={**asdict(model.cfg), "z_mean": model.z_mean.tolist(), "z_std": model.z_std.tolist()},
+        ekf_process_noise=default_process_noise(schema.DT_S).tolist(),
+        training=training,
+        L=model.cfg.window_len,
+        H=model.cfg.encoder_len,
+    )
+
+
+def export_onnx(model: Prml2Model, metadata: ModelMetadata, out_path: str | Path, *, opset: int = OPSET) -> Path:
+    """Write ``model`` as a fixed-shape ONNX graph with ``metadata`` embedded; returns the path."""
+    import onnx
+
+    out_path = Path(out_path)
+    model = model.eval()
+    dummy = torch.zeros(1, model.cfg.window_len, schema.NUM_SIGNALS, dtype=torch.float32)
+    buf = io.BytesIO()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # TracerWarnings and the legacy-exporter deprecation notice
+        torch.onnx.export(
+            model,
+            (dummy,),
+            buf,
+            input_names=[INPUT_NAME],
+            output_names=list(OUTPUT_NAMES),
+            opset_version=opset,
+            do_constant_folding=True,
+            dynamo=False,
+        )
+    proto = onnx.load_from_string(buf.getvalue())
+    set_metadata(proto, metadata)
+    onnx.checker.check_model(proto)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    onnx.save(proto, str(out_path))
+    return out_path
+
+
+def set_metadata(proto, metadata: ModelMetadata) -> None:
+    """Put ``metadata`` JSON under ``metadata_props[METADATA_KEY]`` of an ONNX ModelProto (replacing any)."""
+    keep = [p for p in proto.metadata_props if p.key != METADATA_KEY]
+    del proto.metadata_props[:]
+    for p in keep:
+        proto.metadata_props.add(key=p.key, value=p.value)
+    proto.metadata_props.add(key=METADATA_KEY, value=metadata.to_json())
+    proto.producer_name = "prml2-edge"
+    proto.producer_version = __version__
+
+
+def read_metadata(path: str | Path) -> ModelMetadata:
+    """The PRML2 metadata of an ONNX file (via onnxruntime, as the runtime reads it)."""
+    import onnxruntime as ort
+
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    props = sess.get_modelmeta().custom_metadata_map
+    if METADATA_KEY not in props:
+        raise ModelError(f"{path}: no PRML2 metadata (key {METADATA_KEY!r})")
+    return ModelMetadata.from_json(props[METADATA_KEY], str(path))
+
+
+def ort_session(path: str | Path):
+    """A single-threaded CPU onnxruntime session for ``path`` (deterministic numbers)."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    opts.inter_op_num_threads = 1
+    return ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
+
+
+def run_ort(session, windows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Run the (1, L, 9) graph over ``windows`` (n, L, 9) one at a time: ``(mean, var)`` (n, L-H, 5)."""
+    means, variances = [], []
+    for w in np.asarray(windows, dtype=np.float32):
+        m, v = session.run(list(OUTPUT_NAMES), {INPUT_NAME: w[None]})
+        means.append(m[0])
+        variances.append(v[0])
+    return np.stack(means), np.stack(variances)
+
+
+def parity(model: Prml2Model, onnx_path: str | Path, windows: np.ndarray) -> dict[str, float]:
+    """Max abs difference between torch and onnxruntime over ``windows`` (n, L, 9): ``{"mean", "var", "n"}``."""
+    session = ort_session(onnx_path)
+    o_mean, o_var = run_ort(session, windows)
+    with torch.no_grad():
+        t_mean, t_var = model.eval()(torch.as_tensor(np.asarray(windows, dtype=np.float32)))
+    return {"mean": float(np.max(np.abs(o_mean - t_mean.numpy()))),
+            "var": float(np.max(np.abs(o_var - t_var.numpy()))),
+            "n": int(len(windows))}
+
+
+def quantize_int8(fp32_path: str | Path, int8_path: str | Path, metadata: ModelMetadata | None = None) -> Path:
+    """Dynamic int8 quantisation (onnxruntime ``quantize_dynamic``); the metadata is carried over."""
+    import onnx
+    from onnxruntime.quantization import QuantType, quantize_dynamic
+
+    int8_path = Path(int8_path)
+    quantize_dynamic(str(fp32_path), str(int8_path), weight_type=QuantType.QInt8)
+    proto = onnx.load(str(int8_path))
+    meta = metadata or ModelMetadata.from_json(
+        next(p.value for p in onnx.load(str(fp32_path)).metadata_props if p.key == METADATA_KEY))
+    meta = ModelMetadata(**{**asdict(meta), "training": {**meta.training, "int8": True}})
+    set_metadata(proto, meta)
+    onnx.save(proto, str(int8_path))
+    return int8_path
+
+
+def compare_int8(fp32_path: str | Path, int8_path: str | Path, windows: np.ndarray, z_gt: np.ndarray) -> dict:
+    """z RMSE per state of the fp32 and int8 graphs on ``windows`` (n, L, 9) against ``z_gt`` (n, L-H, 5).
+
+    Returns ``{"fp32": {state: rmse}, "int8": {...}, "max_abs_mean_diff": float, "n_windows": n}``
+    (before the guard, SI units).
+    """
+    f_mean, _ = run_ort(ort_session(fp32_path), windows)
+    q_mean, _ = run_ort(ort_session(int8_path), windows)
+
+    def rmse(mean: np.ndarray) -> dict[str, float]:
+        err = mean.astype(np.float64) - np.asarray(z_gt, dtype=np.float64)
+        return {name: float(np.sqrt(np.mean(err[..., i] ** 2))) for i, name in enumerate(schema.STATE_NAMES)}
+
+    return {"fp32": rmse(f_mean), "int8": rmse(q_mean), "max_abs_mean_diff": float(np.max(np.abs(f_mean - q_mean))),
+            "n_windows": int(len(windows))}

@@ -1,0 +1,443 @@
+"""Two-stage PRML2 training (paper Sec. III-D, IV-A; method.md "Model").
+
+1. **Pretraining** (the first 70 % of the epochs, or all of them with ``finetune=False``,
+   which is PRML2*): NLL (Eq. nll_loss) of the guarded predictions.
+2. **Fine-tuning** (the last 30 %): NLL + beta * tanh(sum_t ||d_t - d_t^gt||^2 / beta) with d_t
+   the a-posteriori positions of the differentiable EKF run over the decoder steps, started from
+   the ground-truth state at the first decoder step in the window-local frame.
+
+Adam; the learning rate follows a cosine schedule within each stage (restarting at the switch,
+so fine-tuning starts at the full rate rather than at the tail of one long cosine). The physics
+guard (``PhysicsGuard(mu)``) follows the model in both stages.
+
+Validation every epoch on the validation windows (NLL, position term, z RMSE); the best
+checkpoint of the *last stage that ran* is kept as ``best.pt`` (lowest validation NLL for
+pretraining, lowest validation NLL + position term for fine-tuning, so the shipped PRML2 model
+is always a fine-tuned one). ``last.pt`` (with the optimizer) is written every epoch for
+resuming. Steps whose gradient norm is not finite or exceeds ``explode_grad_norm`` are skipped
+and counted. Seeded: the weights depend only on the seed, the data and the world size; each
+epoch's shuffle is drawn from ``(seed, epoch)``, so a resumed run equals an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from prml2_edge import schema
+from prml2_edge.errors import ConfigError, ModelError
+from prml2_edge.progress import Progress
+from prml2_edge.training import distributed as ddp
+from prml2_edge.training.checkpoint import make_checkpoint, read_checkpoint, save_checkpoint
+from prml2_edge.training.guard_torch import PhysicsGuard
+from prml2_edge.training.losses import initial_state, nll_loss, position_loss, to_window_frame
+from prml2_edge.training.model import Prml2Model
+from prml2_edge.training.presets import (
+    ModelConfig,
+    TrainConfig,
+    model_config_from_dict,
+    train_config_from_dict,
+)
+
+log = logging.getLogger(__name__)
+
+PRETRAIN = "pretrain"
+FINETUNE = "finetune"
+EKF_DTYPE = torch.float64  # the filter runs in float64 (100 recursive steps, Joseph form)
+
+
+class WindowSource(Protocol):
+    """What the trainer needs from a window set (``prml2_edge.data.windows.WindowSet``)."""
+
+    def __len__(self) -> int: ...
+
+    def get(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(onboard (b, L, 9) float32, z (b, L, 5) float32, pose (b, L, 3) float64)``."""
+        ...
+
+
+@dataclass
+class TrainData:
+    """Everything :func:`fit` reads: windows, normalisation statistics and provenance.
+
+    ``norm_mean``/``norm_std`` (9,) are the dataset's onboard statistics [SI]; ``z_mean``/``z_std``
+    (5,) those of z on the training split [SI].
+    """
+
+    train: WindowSource
+    val: WindowSource
+    norm_mean: np.ndarray
+    norm_std: np.ndarray
+    z_mean: np.ndarray
+    z_std: np.ndarray
+    fingerprint: str
+    skip_rows: tuple[np.ndarray, np.ndarray] | None = None  # (onboard (N, 9), z (N, 5)) to fit the skip on
+
+
+@dataclass
+class FitResult:
+    """What :func:`fit` produced (paths are under the run directory)."""
+
+    out_dir: Path
+    best_path: Path
+    last_path: Path
+    metrics_path: Path
+    history: list[dict] = field(default_factory=list)
+    wall_s: float = 0.0
+    counters: dict = field(default_factory=dict)
+    model: Prml2Model | None = None  # the trained model (last epoch's weights, this rank's copy)
+
+
+class _Filter:
+    """Lazy handle on the differentiable EKF (``prml2_edge.training.ekf_torch``)."""
+
+    def __init__(self) -> None:
+        from prml2_edge.training import ekf_torch
+
+        self.ekf = ekf_torch
+        self.Q = ekf_torch.default_process_noise(schema.DT_S, dtype=EKF_DTYPE, device=torch.device("cpu"))
+        self.P0 = ekf_torch.default_initial_covariance(dtype=EKF_DTYPE, device=torch.device("cpu"))
+
+    def positions(self, mean: torch.Tensor, var: torch.Tensor, z_first: torch.Tensor) -> torch.Tensor:
+        """A-posteriori positions (B, T, 2) [m, window frame] over the decoder steps.
+
+        ``mean``/``var`` (B, T, 5) guarded model outputs; ``z_first`` (B, 5) ground-truth z at step H.
+        """
+        b = mean.shape[0]
+        x0 = initial_state(z_first.to(EKF_DTYPE))  # (B, 8)
+        p0 = self.P0.expand(b, -1, -1)
+        x_seq, _ = self.ekf.run_filter(x0, p0, mean.to(EKF_DTYPE), var.to(EKF_DTYPE), Q=self.Q,
+                                       dt_s=schema.DT_S, update_first=True)
+        return x_seq[..., schema.EkfState.POS]  # (B, T, 2)
+
+
+def z_statistics(z_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and std (5,) of ground-truth z rows (N, 5) [SI] (std floored at 1e-3)."""
+    z_rows = np.asarray(z_rows, dtype=np.float64)
+    if z_rows.ndim != 2 or z_rows.shape[1] != schema.NUM_STATES or len(z_rows) < 2:
+        raise ConfigError(f"need at least two ground-truth z rows (N, {schema.NUM_STATES}) for statistics")
+    return z_rows.mean(axis=0), np.maximum(z_rows.std(axis=0), 1e-3)
+
+
+def cosine_lr(lr0: float, step: int, total_steps: int) -> float:
+    """Cosine schedule from ``lr0`` at step 0 towards 0 at ``total_steps`` (one stage)."""
+    if total_steps <= 1:
+        return lr0
+    return 0.5 * lr0 * (1.0 + math.cos(math.pi * min(step, total_steps) / total_steps))
+
+
+def _batches(indices: np.ndarray, batch_size: int) -> list[np.ndarray]:
+    return [indices[i : i + batch_size] for i in range(0, len(indices), batch_size)]
+
+
+def _to_tensors(batch: tuple[np.ndarray, np.ndarray, np.ndarray], H: int):
+    onboard, z, pose = batch
+    onboard_t = torch.as_tensor(np.ascontiguousarray(onboard), dtype=torch.float32)  # (b, L, 9)
+    z_t = torch.as_tensor(np.ascontiguousarray(z), dtype=torch.float32)  # (b, L, 5)
+    # window-local positions in float64 (world coordinates can be km: float32 would lose cm)
+    d_gt = to_window_frame(torch.as_tensor(np.asarray(pose, dtype=np.float64)), H)[:, H:]  # (b, L-H, 2)
+    return onboard_t, z_t, d_gt
+
+
+def _stage_of(epoch: int, cfg: TrainConfig) -> str:
+    return PRETRAIN if epoch < cfg.pretrain_epochs() else FINETUNE
+
+
+def _steps_per_epoch(n_windows: int, cfg: TrainConfig, world_size: int) -> int:
+    n = min(n_windows, cfg.max_train_windows) if cfg.max_train_windows > 0 else n_windows
+    per_rank = -(-n // world_size)
+    per_rank_batch = max(1, cfg.batch_size // world_size)
+    return max(1, -(-per_rank // per_rank_batch))
+
+
+def evaluate_windows(model: Prml2Model, guard: PhysicsGuard, windows: WindowSource, *, batch_size: int,
+                     with_position: bool, filt: _Filter | None, beta: float = 8.0,
+                     info: ddp.DistInfo | None = None) -> dict:
+    """Validation metrics over all windows of ``windows`` (sharded over ranks, summed).
+
+    Returns ``{"val_nll", "val_pos" (or NaN), "val_rmse_<state>", "val_guard_fire_rate", "val_windows"}``:
+    NLL and position term are means per window (the training objective's scale); RMSE over
+    every decoder step of every window, guarded means, SI units.
+    """
+    info = info or ddp.DistInfo()
+    H = model.cfg.encoder_len
+    idx_all = ddp.shard(np.arange(len(windows)), info) if len(windows) else np.arange(0)
+    n_states = schema.NUM_STATES
+    # sums: nll, pos, n_windows, sq_err (5), n_steps, fired, predictions
+    acc = torch.zeros(5 + n_states, dtype=torch.float64)
+    was_training = model.training
+    model.eval()
+    fired0 = guard.n_fired
+    with torch.no_grad():
+        for idx in _batches(idx_all, batch_size):
+            onboard, z, d_gt = _to_tensors(windows.get(idx), H)
+            mean, var = guard(*model(onboard))
+            z_dec = z[:, H:]
+            acc[0] += nll_loss(mean, var, z_dec, model.z_std).double().sum()
+            if with_position and filt is not None:
+                d = filt.positions(mean, var, z[:, H])
+                acc[1] += position_loss(d, d_gt, beta).sum()
+            acc[2] += len(idx)
+            acc[3 : 3 + n_states] += ((mean - z_dec).double() ** 2).sum(dim=(0, 1))
+            acc[3 + n_states] += z_dec.shape[0] * z_dec.shape[1]
+    acc[4 + n_states] = guard.n_fired - fired0  # fired predictions in this evaluation
+    acc = ddp.all_reduce_sum(acc, info)
+    model.train(was_training)
+    n_win = max(acc[2].item(), 1.0)
+    n_steps = max(acc[3 + n_states].item(), 1.0)
+    out = {
+        "val_nll": acc[0].item() / n_win,
+        "val_pos": acc[1].item() / n_win if with_position and filt is not None else float("nan"),
+        "val_windows": int(acc[2].item()),
+    }
+    for i, name in enumerate(schema.STATE_NAMES):
+        out[f"val_rmse_{name}"] = math.sqrt(acc[3 + i].item() / n_steps)
+    out["val_guard_fire_rate"] = acc[4 + n_states].item() / (n_steps * 1.0)
+    return out
+
+
+def _write_jsonl(path: Path, record: dict) -> None:
+    with path.open("a") as fh:
+        fh.write(json.dumps(record, sort_keys=True) + "\n")
+
+
+def fit(
+    data: TrainData,
+    out_dir: str | Path,
+    *,
+    preset: str,
+    model_cfg: ModelConfig,
+    train_cfg: TrainConfig,
+    resume: str | Path | None = None,
+    info: ddp.DistInfo | None = None,
+    progress: bool | None = None,
+    on_epoch: Callable[[dict], None] | None = None,
+) -> FitResult:
+    """Train a PRML2 model on ``data``; write checkpoints, ``metrics.jsonl`` and ``loss_curve.png`` to ``out_dir``.
+
+    Parameters
+    ----------
+    data
+        Training and validation windows with statistics (:class:`TrainData`).
+    out_dir
+        Run directory (created). Only rank 0 writes.
+    preset, model_cfg, train_cfg
+        The preset name (recorded) and the configs (``train_cfg.finetune=False`` gives PRML2*).
+    resume
+        A ``last.pt`` to continue from: its model and train configs must equal the given ones,
+        and its dataset fingerprint the data's.
+    info
+        Distributed context (:func:`prml2_edge.training.distributed.init`); default single process.
+    progress
+        Show a progress bar (default: unless ``PRML2_NO_PROGRESS=1``).
+    on_epoch
+        Called with each epoch's log record (rank 0).
+    """
+    t_start = time.monotonic()
+    info = info or ddp.DistInfo()
+    model_cfg.validate()
+    train_cfg.validate()
+    out_dir = Path(out_dir)
+    metrics_path = out_dir / "metrics.jsonl"
+    best_path, last_path = out_dir / "best.pt", out_dir / "last.pt"
+    if len(data.train) == 0:
+        raise ConfigError("no training windows: the training split is shorter than one window (L samples)")
+    if len(data.val) == 0:
+        raise ConfigError("no validation windows: the validation split is shorter than one window (L samples)")
+
+    torch.manual_seed(train_cfg.seed)
+    model = Prml2Model(model_cfg, data.norm_mean, data.norm_std, data.z_mean, data.z_std)
+    if data.skip_rows is not None:
+        model.init_skip(*data.skip_rows)
+    guard = PhysicsGuard(mu=train_cfg.mu)
+    optimizer = torch.optim.Adam(model.parameters(), lr=train_cfg.lr, weight_decay=train_cfg.weight_decay)
+    counters = {"steps": 0, "skipped_nonfinite": 0, "skipped_exploding": 0}
+    start_epoch = 0
+    best_score = math.inf
+    history: list[dict] = []
+
+    if resume is not None:
+        ckpt = read_checkpoint(resume)
+        if ckpt.get("optimizer") is None:
+            raise ModelError(f"{resume} has no optimizer state; resume from a run's last.pt")
+        if model_config_from_dict(ckpt["model_config"]) != model_cfg:
+            raise ConfigError(f"{resume} was trained with another model config; use the same --preset")
+        if train_config_from_dict(ckpt["train_config"]) != train_cfg:
+            raise ConfigError(f"{resume} was trained with other training options; repeat the original ones")
+        if ckpt["dataset_fingerprint"] != data.fingerprint:
+            raise ConfigError(f"{resume} was trained on another dataset (fingerprint {ckpt['dataset_fingerprint']})")
+        model.load_state_dict(ckpt["model"])
+        optimizer.load_state_dict(ckpt["optimizer"])
+        start_epoch = int(ckpt["epoch"])
+        best_score = math.inf if ckpt.get("best_score") is None else float(ckpt["best_score"])
+        counters.update(ckpt.get("counters", {}))
+        if metrics_path.is_file():
+            history = [json.loads(line) for line in metrics_path.read_text().splitlines() if line.strip()]
+            history = [h for h in history if h.get("epoch", 0) <= start_epoch]
+
+    train_model: torch.nn.Module = model
+    if info.enabled:
+        train_model = torch.nn.parallel.DistributedDataParallel(model)
+
+    if info.is_main:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if resume is None:
+            metrics_path.write_text("")
+            best_path.unlink(missing_ok=True)
+        else:  # drop records of epochs after the checkpoint
+            metrics_path.write_text("".join(json.dumps(h, sort_keys=True) + "\n" for h in history))
+
+    filt = _Filter() if train_cfg.finetune else None
+    H = model_cfg.encoder_len
+    n_train = len(data.train)
+    steps_per_epoch = _steps_per_epoch(n_train, train_cfg, info.world_size)
+    per_rank_batch = max(1, train_cfg.batch_size // info.world_size)
+    params = [p for p in model.parameters() if p.requires_grad]
+
+    for epoch in range(start_epoch, train_cfg.epochs):
+        stage = _stage_of(epoch, train_cfg)
+        if epoch > 0 and stage != _stage_of(epoch - 1, train_cfg):
+            best_score = math.inf  # a new stage: its own best
+        stage_first = 0 if stage == PRETRAIN else train_cfg.pretrain_epochs()
+        stage_epochs = train_cfg.pretrain_epochs() if stage == PRETRAIN else train_cfg.epochs - stage_first
+        stage_steps = stage_epochs * steps_per_epoch
+        t_epoch = time.monotonic()
+        rng = np.random.default_rng([train_cfg.seed, epoch])
+        order = rng.permutation(n_train)
+        if train_cfg.max_train_windows > 0:
+            order = order[: train_cfg.max_train_windows]
+        mine = ddp.shard(order, info)
+        batches = _batches(mine, per_rank_batch)
+        sums = torch.zeros(4, dtype=torch.float64)  # loss, nll, pos, windows
+        guard.reset_stats()
+        train_model.train()
+        bar = Progress(len(batches), desc=f"epoch {epoch + 1}/{train_cfg.epochs} {stage}", unit="batch",
+                       enabled=(progress if info.is_main else False))
+        for step_in_epoch, idx in enumerate(batches):
+            lr = cosine_lr(train_cfg.lr, (epoch - stage_first) * steps_per_epoch + step_in_epoch, stage_steps)
+            for group in optimizer.param_groups:
+                group["lr"] = lr
+            onboard, z, d_gt = _to_tensors(data.train.get(idx), H)
+            mean, var = guard(*train_model(onboard))  # (b, L-H, 5) each
+            nll = nll_loss(mean, var, z[:, H:], model.z_std)  # (b,)
+            loss = nll.mean()
+            pos = torch.zeros(())
+            if stage == FINETUNE:
+                d = filt.positions(mean, var, z[:, H])  # (b, L-H, 2)
+                pos = position_loss(d, d_gt, train_cfg.beta).mean()
+                loss = loss + pos.to(loss.dtype)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            grad_norm = torch.nn.utils.clip_grad_norm_(params, train_cfg.grad_clip).item()  # after all-reduce
+            # the decision uses the gradient norm only: after DDP's all-reduce it is the same on every
+            # rank (a NaN loss on one rank makes the shared gradients NaN), so all ranks agree.
+            if not math.isfinite(grad_norm):
+                counters["skipped_nonfinite"] += 1
+            elif grad_norm > train_cfg.explode_grad_norm:
+                counters["skipped_exploding"] += 1
+            else:
+                optimizer.step()
+                sums += torch.tensor([loss.item() * len(idx), nll.mean().item() * len(idx),
+                                      float(pos.item()) * len(idx), len(idx)], dtype=torch.float64)
+            counters["steps"] += 1
+            bar.update()
+            if step_in_epoch % 5 == 0:
+                bar.set_postfix(f"loss {loss.item():.3g}")
+        bar.close()
+        sums = ddp.all_reduce_sum(sums, info)
+        train_fire = ddp.all_reduce_sum(torch.tensor([guard.n_fired, guard.n_predictions], dtype=torch.float64), info)
+        train_time = time.monotonic() - t_epoch
+        val = evaluate_windows(model, guard, data.val, batch_size=max(per_rank_batch, 64),
+                               with_position=filt is not None, filt=filt, beta=train_cfg.beta, info=info)
+        n_used = max(sums[3].item(), 1.0)
+        record: dict[str, Any] = {
+            "epoch": epoch + 1,
+            "stage": stage,
+            "lr_end": lr,
+            "train_loss": sums[0].item() / n_used,
+            "train_nll": sums[1].item() / n_used,
+            "train_pos": sums[2].item() / n_used if stage == FINETUNE else float("nan"),
+            "train_windows": int(sums[3].item()),
+            "train_guard_fire_rate": train_fire[0].item() / max(train_fire[1].item(), 1.0),
+            **val,
+            "train_time_s": train_time,
+            "epoch_time_s": time.monotonic() - t_epoch,
+            "train_windows_per_s": sums[3].item() / max(train_time, 1e-9),
+            **{k: int(v) for k, v in counters.items()},
+        }
+        score = val["val_nll"] + (val["val_pos"] if stage == FINETUNE else 0.0)
+        record["val_objective"] = score
+        improved = math.isfinite(score) and score < best_score
+        if improved:
+            best_score = score
+        record["best"] = improved
+        history.append(record)
+        if info.is_main:
+            _write_jsonl(metrics_path, record)
+            ckpt = make_checkpoint(model, preset, train_cfg, data.fingerprint, epoch=epoch + 1, stage=stage,
+                                   metrics=record, counters=counters, optimizer=optimizer, best_score=best_score)
+            save_checkpoint(ckpt, last_path)
+            if improved:
+                ckpt.pop("optimizer")
+                save_checkpoint(ckpt, best_path)
+            try:
+                from prml2_edge.training.plots import plot_history
+
+                plot_history(history, out_dir / "loss_curve.png")
+            except ImportError:  # matplotlib is part of the train extra; a missing plot is not fatal
+                log.warning("matplotlib not installed: no loss_curve.png")
+            if on_epoch is not None:
+                on_epoch(record)
+    if info.is_main and not best_path.is_file() and last_path.is_file():
+        # every epoch had a non-finite validation objective: keep the last weights as "best"
+        ckpt = read_checkpoint(last_path)
+        ckpt.pop("optimizer", None)
+        save_checkpoint(ckpt, best_path)
+    if info.enabled:
+        torch.distributed.barrier()
+    return FitResult(out_dir=out_dir, best_path=best_path, last_path=last_path, metrics_path=metrics_path,
+                     history=history, wall_s=time.monotonic() - t_start, counters=dict(counters), model=model)
+
+
+def describe(model_cfg: ModelConfig, train_cfg: TrainConfig) -> dict:
+    """Plain-data description of a run's configuration (for logs and recipes)."""
+    return {"model": asdict(model_cfg), "train": asdict(train_cfg),
+            "pretrain_epochs": train_cfg.pretrain_epochs(),
+            "finetune_epochs": train_cfg.epochs - train_cfg.pretrain_epochs()}
+
+
+def prepare_data(dataset, model_cfg: ModelConfig, train_cfg: TrainConfig) -> TrainData:
+    """Windows and statistics of a loaded dataset (``prml2_edge.data.datasets.Dataset``) for :func:`fit`.
+
+    Training windows every ``train_cfg.window_stride`` samples of the training split, validation
+    windows every ``train_cfg.val_stride`` samples of the validation split; z statistics and the
+    rows the model's linear skip is fitted on from the training split's samples.
+    """
+    from prml2_edge.data.windows import build_windows
+
+    train_drives = [d for d in dataset.split("train") if d.has_ground_truth]
+    val_drives = [d for d in dataset.split("val") if d.has_ground_truth]
+    if not train_drives:
+        raise ConfigError(f"{dataset.root}: no training drives with ground truth (need z and pose columns)")
+    z_rows = np.concatenate([d.z_gt for d in train_drives])
+    z_mean, z_std = z_statistics(z_rows)
+    L, H = model_cfg.window_len, model_cfg.encoder_len
+    return TrainData(
+        train=build_windows(train_drives, L=L, H=H, stride=train_cfg.window_stride),
+        val=build_windows(val_drives, L=L, H=H, stride=train_cfg.val_stride),
+        norm_mean=np.asarray(dataset.norm_mean, dtype=np.float64),
+        norm_std=np.asarray(dataset.norm_std, dtype=np.float64),
+        z_mean=z_mean,
+        z_std=z_std,
+        fingerprint=str(dataset.fingerprint),
+        skip_rows=(np.concatenate([d.onboard for d in train_drives]), z_rows),
+    )

@@ -1,0 +1,112 @@
+"""ONNX export: fixed shape, embedded metadata, onnxruntime parity with torch, int8, the CLI."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+onnx = pytest.importorskip("onnx")
+ort = pytest.importorskip("onnxruntime")
+
+from prml2_edge import schema  # noqa: E402
+from prml2_edge.cli.main import main  # noqa: E402
+from prml2_edge.model_meta import INPUT_NAME, METADATA_KEY, OUTPUT_NAMES, ModelMetadata  # noqa: E402
+from prml2_edge.training.checkpoint import make_checkpoint, save_checkpoint  # noqa: E402
+from prml2_edge.training.export_onnx import (  # noqa: E402
+    compare_int8,
+    export_onnx,
+    metadata_for,
+    parity,
+    quantize_int8,
+    read_metadata,
+)
+from prml2_edge.training.model import Prml2Model  # noqa: E402
+from prml2_edge.training.presets import get_preset  # noqa: E402
+
+torch.set_num_threads(1)
+PRESET = get_preset("tiny")
+NORM_MEAN = np.array([12.0, 0.1, 0.0, 0.0, 4.0, 12.0, 12.0, 12.0, 12.0])
+NORM_STD = np.array([7.0, 1.5, 0.2, 1.8, 8.0, 7.0, 7.0, 7.0, 7.0])
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A tiny model with non-trivial weights and its checkpoint file."""
+    torch.manual_seed(3)
+    model = Prml2Model(PRESET.model, NORM_MEAN, NORM_STD, [12.0, 0.0, 0.0, 0.0, 0.0], [7.0, 0.2, 1.2, 1.8, 0.2])
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(torch.randn_like(p) * 0.05)
+    ckpt = make_checkpoint(model.eval(), "tiny", PRESET.train, "fp-test", epoch=2, stage="finetune")
+    path = save_checkpoint(ckpt, tmp_path_factory.mktemp("ckpt") / "best.pt")
+    return model, ckpt, path
+
+
+def _windows(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return (NORM_MEAN + NORM_STD * rng.normal(size=(n, schema.WINDOW_LEN, schema.NUM_SIGNALS))).astype(np.float32)
+
+
+def test_graph_has_fixed_shape_metadata_and_matches_torch(trained, tmp_path):
+    model, ckpt, _ = trained
+    path = export_onnx(model, metadata_for(model, ckpt), tmp_path / "m.onnx")
+    proto = onnx.load(str(path))
+    assert max(op.version for op in proto.opset_import if op.domain in ("", "ai.onnx")) >= 17
+    dims = {v.name: [d.dim_value for d in v.type.tensor_type.shape.dim] for v in (*proto.graph.input,
+                                                                                 *proto.graph.output)}
+    assert dims == {INPUT_NAME: [1, 250, 9], OUTPUT_NAMES[0]: [1, 100, 5], OUTPUT_NAMES[1]: [1, 100, 5]}
+    meta = read_metadata(path)
+    meta.check_schema()
+    assert meta.preset == "tiny" and meta.dataset_fingerprint == "fp-test" and not meta.guard_in_graph
+    np.testing.assert_allclose(meta.norm_mean, NORM_MEAN, rtol=1e-6)
+    assert np.asarray(meta.ekf_process_noise).shape == (8, 8)
+    assert meta.training["finetune"] is True and meta.config["d_model"] == PRESET.model.d_model
+    assert [p.key for p in proto.metadata_props].count(METADATA_KEY) == 1
+    diff = parity(model, path, _windows(100))
+    assert diff["n"] == 100
+    assert diff["mean"] <= 1e-4 and diff["var"] <= 1e-4, diff
+
+
+def test_graph_excludes_the_guard(trained, tmp_path):
+    """A window that makes the model predict beyond the limits comes out unguarded."""
+    model, ckpt, _ = trained
+    with torch.no_grad():
+        big = Prml2Model(PRESET.model, NORM_MEAN, NORM_STD, [40.0, 0, 0, 0, 3.0], [1.0, 1, 1, 1, 1])
+        big.load_state_dict({k: v for k, v in model.state_dict().items() if k != "z_mean"}, strict=False)
+    path = export_onnx(big, metadata_for(big, ckpt), tmp_path / "big.onnx")
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    mean, var = sess.run(list(OUTPUT_NAMES), {INPUT_NAME: _windows(1)})
+    assert mean.shape == (1, 100, 5) and np.all(var > 0)
+    assert np.abs(mean[..., 0]).max() > schema.V_MAX_MPS and np.abs(mean[..., 4]).max() > schema.OMEGA_MAX_RADPS
+
+
+def test_int8_keeps_metadata_and_reports_accuracy(trained, tmp_path):
+    model, ckpt, _ = trained
+    fp32 = export_onnx(model, metadata_for(model, ckpt), tmp_path / "m.onnx")
+    q = quantize_int8(fp32, tmp_path / "m8.onnx")
+    assert read_metadata(q).training["int8"] is True
+    w = _windows(8, seed=1)
+    with torch.no_grad():
+        z = model(torch.as_tensor(w))[0].numpy() + 0.1  # a stand-in truth
+    report = compare_int8(fp32, q, w, z)
+    assert set(report["fp32"]) == set(schema.STATE_NAMES) and report["n_windows"] == 8
+    assert 0 < report["max_abs_mean_diff"] < 5.0
+
+
+def test_cli_export_prints_parity(trained, tmp_path, capsys):
+    _, _, ckpt_path = trained
+    out = tmp_path / "cli.onnx"
+    assert main(["export", "--checkpoint", str(ckpt_path), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "parity torch vs onnxruntime on 100 windows" in text
+    ModelMetadata.from_json(onnx.load(str(out)).metadata_props[0].value).check_schema()
+
+
+def test_cli_export_user_errors_are_one_line(trained, tmp_path, capsys):
+    _, _, ckpt_path = trained
+    assert main(["export", "--checkpoint", str(ckpt_path), "--out", str(tmp_path / "x.onnx"), "--int8"]) == 1
+    assert "--int8 needs --data" in capsys.readouterr().err
+    assert main(["export", "--checkpoint", str(tmp_path / "none.pt"), "--out", str(tmp_path / "x.onnx")]) == 1
+    err = capsys.readouterr().err
+    assert "not found" in err and len(err.strip().splitlines()) == 1

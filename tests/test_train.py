@@ -1,0 +1,146 @@
+"""Two-stage training on tiny toy data: stages, checkpoints, resume, skipped steps, streaming validation."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from test_train_data import toy_drive, toy_windows  # noqa: E402
+
+from prml2_edge import schema  # noqa: E402
+from prml2_edge.errors import ConfigError, ModelError  # noqa: E402
+from prml2_edge.training.checkpoint import load_model, read_checkpoint  # noqa: E402
+from prml2_edge.training.presets import get_preset  # noqa: E402
+from prml2_edge.training.trainer import TrainData, fit, z_statistics  # noqa: E402
+from prml2_edge.training.validate import (  # noqa: E402
+    Segment,
+    dead_reckon,
+    evaluate_segments,
+    stream_predict,
+)
+
+torch.set_num_threads(1)
+PRESET = get_preset("tiny")
+CFG = replace(PRESET.train, epochs=2, batch_size=8, max_train_windows=24, num_threads=1)
+
+
+@pytest.fixture(scope="module")
+def toy_data() -> TrainData:
+    drives, train = toy_windows(n_drives=2, n=1200, stride=25)
+    _, val = toy_windows(n_drives=1, n=600, stride=50, seed=10)
+    z_mean, z_std = z_statistics(np.concatenate([d.z_gt for d in drives]))
+    onboard = np.concatenate([d.onboard for d in drives])
+    return TrainData(train=train, val=val, norm_mean=onboard.mean(0), norm_std=onboard.std(0), z_mean=z_mean,
+                     z_std=z_std, fingerprint="toy")
+
+
+def _weights(path) -> dict:
+    return read_checkpoint(path)["model"]
+
+
+def test_two_stages_write_self_describing_checkpoints(toy_data, tmp_path):
+    result = fit(toy_data, tmp_path / "run", preset="tiny", model_cfg=PRESET.model, train_cfg=CFG, progress=False)
+    records = [json.loads(line) for line in result.metrics_path.read_text().splitlines()]
+    assert [r["stage"] for r in records] == ["pretrain", "finetune"]
+    assert np.isnan(records[0]["train_pos"]) and np.isfinite(records[1]["train_pos"])
+    assert np.isfinite(records[1]["val_pos"]) and records[1]["val_pos"] >= 0
+    assert all(np.isfinite(r["val_nll"]) and r["train_windows"] == 24 for r in records)
+    assert (tmp_path / "run" / "loss_curve.png").stat().st_size > 1000
+    # weights only: a plain torch.load(weights_only=True) reads it, and it says what it is
+    raw = torch.load(result.best_path, weights_only=True)
+    assert raw["signal_names"] == list(schema.SIGNAL_NAMES) and raw["schema_hash"] == schema.SCHEMA_HASH
+    assert raw["dataset_fingerprint"] == "toy" and raw["preset"] == "tiny" and raw["stage"] == "finetune"
+    assert raw["model_config"]["d_model"] == PRESET.model.d_model and raw["train_config"]["epochs"] == 2
+    assert len(raw["norm_mean"]) == 9 and len(raw["z_std"]) == 5 and "prml2-edge" in raw["code_version"]
+    assert "optimizer" not in raw and "optimizer" in torch.load(result.last_path, weights_only=True)
+    model, _ = load_model(result.best_path)
+    assert not model.training
+
+
+def test_same_seed_is_repeatable_and_resume_equals_uninterrupted(toy_data, tmp_path):
+    full = fit(toy_data, tmp_path / "full", preset="tiny", model_cfg=PRESET.model, train_cfg=CFG, progress=False)
+
+    class Crash(Exception):
+        pass
+
+    def crash(record):
+        raise Crash
+
+    with pytest.raises(Crash):  # dies after writing epoch 1
+        fit(toy_data, tmp_path / "cut", preset="tiny", model_cfg=PRESET.model, train_cfg=CFG, progress=False,
+            on_epoch=crash)
+    resumed = fit(toy_data, tmp_path / "cut", preset="tiny", model_cfg=PRESET.model, train_cfg=CFG,
+                  progress=False, resume=tmp_path / "cut" / "last.pt")
+    a, b = _weights(full.last_path), _weights(resumed.last_path)
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+    assert len(resumed.metrics_path.read_text().splitlines()) == 2
+    with pytest.raises(ConfigError, match="other training options"):
+        fit(toy_data, tmp_path / "cut", preset="tiny", model_cfg=PRESET.model, train_cfg=replace(CFG, lr=0.5),
+            progress=False, resume=tmp_path / "cut" / "last.pt")
+    with pytest.raises(ModelError, match="optimizer"):
+        fit(toy_data, tmp_path / "cut", preset="tiny", model_cfg=PRESET.model, train_cfg=CFG,
+            progress=False, resume=full.best_path)
+
+
+def test_nonfinite_batches_are_skipped_and_counted(toy_data, tmp_path):
+    bad = toy_windows(n_drives=2, n=1200, stride=25)[1]
+    bad.onboard = bad.onboard.copy()
+    bad.onboard[100:110, 3] = np.nan  # a few windows carry NaN
+    data = replace(toy_data, train=bad)
+    cfg = replace(CFG, epochs=1, max_train_windows=0, finetune=False)
+    result = fit(data, tmp_path / "nan", preset="tiny", model_cfg=PRESET.model, train_cfg=cfg, progress=False)
+    assert result.counters["skipped_nonfinite"] > 0
+    assert result.counters["skipped_nonfinite"] < result.counters["steps"]
+    assert all(torch.isfinite(v).all() for v in _weights(result.last_path).values())
+
+
+def test_training_lowers_validation_nll(toy_data, tmp_path):
+    cfg = replace(CFG, epochs=4, finetune=False, lr=3e-3, max_train_windows=0)
+    result = fit(toy_data, tmp_path / "learn", preset="tiny", model_cfg=PRESET.model, train_cfg=cfg,
+                 progress=False)
+    nll = [h["val_nll"] for h in result.history]
+    assert nll[-1] < nll[0] - 50, nll
+
+
+def test_streaming_uses_newest_window_output(toy_data, tmp_path):
+    from prml2_edge.training.model import Prml2Model
+
+    torch.manual_seed(0)
+    model = Prml2Model(PRESET.model, toy_data.norm_mean, toy_data.norm_std, toy_data.z_mean, toy_data.z_std).eval()
+    drive = toy_drive(400, seed=3)
+    out = stream_predict(model, drive.onboard, stride=1, batch_size=64)
+    assert np.isnan(out.mean[:249]).all() and out.valid[249:].all()
+    with torch.no_grad():
+        m, v = model(torch.as_tensor(drive.onboard[300 - 249 : 301][None], dtype=torch.float32))
+    np.testing.assert_allclose(out.mean[300], m[0, -1].numpy(), atol=1e-5)
+    np.testing.assert_allclose(out.var[300], v[0, -1].numpy(), rtol=1e-5)
+    held = stream_predict(model, drive.onboard, stride=10, batch_size=64)
+    np.testing.assert_allclose(held.mean[249:259], np.repeat(out.mean[249:250], 10, axis=0), atol=1e-5)
+    np.testing.assert_allclose(held.mean[259], out.mean[259], atol=1e-5)
+
+
+def test_dead_reckoning_with_true_dynamics_stays_close():
+    drive = toy_drive(1200, seed=4)
+    var = np.tile([0.01, 0.01, 0.1, 0.1, 1e-4], (len(drive), 1))
+    errors = dead_reckon(drive.z_gt, var, drive.z_gt, drive.pose_gt, 300, 500)
+    assert errors[0] == 0.0 and errors.max() < 0.5
+
+
+def test_evaluate_segments_reports_rmse_osd_and_dead_reckoning(toy_data):
+    from prml2_edge.training.model import Prml2Model
+
+    torch.manual_seed(0)
+    model = Prml2Model(PRESET.model, toy_data.norm_mean, toy_data.norm_std, toy_data.z_mean, toy_data.z_std)
+    drive = toy_drive(1200, seed=5)
+    report = evaluate_segments(model, [Segment(drive, 600, 1200, 1.0)], stride=1, window_s=4.0, progress=False)
+    assert report.n_samples == 600  # context from before the segment: every sample has an estimate
+    assert all(np.isfinite(v) for v in report.z_rmse.values())
+    assert np.isnan(report.osd_z_rmse["v_y_mps"]) and report.osd_z_rmse["v_x_mps"] < 0.1
+    assert report.dr_summary()["n_windows"] == 3
+    assert 0.0 <= report.guard_fire_rate <= 1.0
