@@ -1,0 +1,120 @@
+"""Replay throughput: a 10-minute drive through the runtime as fast as possible; x real time and RSS.
+
+The drive (seeded simulator) is encoded to a candump log and replayed exactly as ``prml2 replay``
+does: :class:`~prml2_edge.runtime.source.LogReplay` (a feeder thread and a python-can virtual bus)
+-> :func:`~prml2_edge.runtime.pipeline.run_source` -> :class:`Pipeline` with the edge model,
+stride 1. RSS (``/proc/self/status`` VmRSS) is sampled every ``--rss-every`` frames; "flat" means
+it grows by at most ``targets.RSS_GROWTH_FRACTION`` over the second half of the run.
+
+Usage::
+
+    .venv/bin/python benchmarks/replay_throughput.py [--minutes 10] [--threads 1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from prml2_edge.bench.latency import build_pipeline, open_session_model
+from prml2_edge.bench.machine import load_average, machine_info
+from prml2_edge.bench.replay_input import simulate_log
+from prml2_edge.runtime.pipeline import run_source
+from prml2_edge.runtime.source import LogReplay
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import report  # noqa: E402
+import targets  # noqa: E402
+from paths import prepared_paths  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+LOG_DIR = HERE.parent / "out" / "bench"
+
+
+def rss_mib() -> float:
+    """Resident set size of this process [MiB] (Linux)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+class _RssProgress:
+    """A ``progress`` for :func:`run_source` that samples RSS every ``every`` frames."""
+
+    def __init__(self, every: int) -> None:
+        self.every = every
+        self.frames = 0
+        self.samples: list[tuple[int, float, float]] = []  # (frames, wall s, RSS MiB)
+        self.t0 = time.perf_counter()
+
+    def update(self, n: int = 1) -> None:
+        self.frames += n
+        if self.frames % self.every == 0:
+            self.samples.append((self.frames, time.perf_counter() - self.t0, rss_mib()))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--minutes", type=float, default=10.0, help="drive length [min]")
+    ap.add_argument("--model", default="edge", help="edge or paper (benchmarks/bench_models.py)")
+    ap.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--rss-every", type=int, default=5000, help="frames between RSS samples")
+    ap.add_argument("--out", default=str(HERE / "results" / "replay.json"))
+    args = ap.parse_args(argv)
+
+    t_start = time.time()
+    machine = machine_info()
+    bm = prepared_paths(args.model, seed=args.seed)  # torch stays out of this process
+    LOG_DIR.mkdir(parents=True, exist_ok=True)
+    log_path = LOG_DIR / f"replay_{args.minutes:g}min_s{args.seed}.log"
+    log_path, pose, duration_s = simulate_log(args.minutes * 60.0, log_path, seed=args.seed)
+    pipeline = build_pipeline(open_session_model(bm["fp32"], threads=args.threads), pose)
+    progress = _RssProgress(args.rss_every)
+    rss0 = rss_mib()
+    t0 = time.perf_counter()
+    with LogReplay(log_path) as source:
+        run_source(pipeline, source, progress=progress)
+        sent, received, error = source.sent, source.received, source.error
+    wall_s = time.perf_counter() - t0
+    summ = pipeline.summary()
+    rss = [s[2] for s in progress.samples] or [rss0]
+    half = rss[len(rss) // 2]
+    growth = rss[-1] - half
+    doc = {
+        "benchmark": "replay",
+        "started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(t_start)),
+        "machine": machine, "load_average_end": load_average(),
+        "model": args.model, "model_source": bm["source"], "torch_imported": "torch" in sys.modules,
+        "threads": args.threads, "stride": 1,
+        "drive_minutes": args.minutes, "data_s": duration_s, "frames_sent": sent, "frames_received": received,
+        "source_error": error, "rows": summ["rows"], "inferences": summ["inferences"],
+        "frames_balanced": summ["frames"]["balanced"],
+        "wall_s": wall_s, "x_realtime": duration_s / wall_s, "rows_per_s": summ["rows"] / wall_s,
+        "frames_per_s": received / wall_s,
+        "latency": summ["latency"],
+        "rss": {"before_mib": rss0, "start_mib": rss[0], "half_mib": half, "end_mib": rss[-1], "peak_mib": max(rss),
+                "second_half_growth_mib": growth, "second_half_growth_fraction": growth / half,
+                "flat": growth / half <= targets.RSS_GROWTH_FRACTION,
+                "samples": [{"frames": f, "wall_s": round(w, 3), "rss_mib": round(r, 2)}
+                            for f, w, r in progress.samples]},
+    }
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=1))
+    lat = summ["latency"]
+    print(f"replayed {args.minutes:g} min ({sent} frames, {summ['rows']} rows) in {wall_s:.1f} s: "
+          f"{doc['x_realtime']:.1f} x real time; RSS {rss[0]:.0f} -> {half:.0f} -> {rss[-1]:.0f} MiB "
+          f"(peak {max(rss):.0f}); infer p50 {lat['infer'].get('p50_ms', float('nan')):.2f} ms, "
+          f"decode p50 {lat['decode'].get('p50_ms', float('nan')) * 1e3:.0f} us per frame")
+    report.update_readme()
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,144 @@
+"""Render benchmark results (``benchmarks/results/*.json``) as text and as the table in ``benchmarks/README.md``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import targets as tg
+
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results"
+README = HERE / "README.md"
+START, END = "<!-- results:start -->", "<!-- results:end -->"
+
+
+def _load(name: str) -> dict | None:
+    path = RESULTS / f"{name}.json"
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def _config_target(c: dict) -> float | None:
+    if c["runtime"] != "onnx":
+        return None
+    if c["model"] == "paper":
+        return tg.PAPER_FP32_P99_MS if c["precision"] == "fp32" else tg.PAPER_REDUCED_P99_MS
+    return tg.EDGE_P99_MS
+
+
+def _yes(met: bool | None) -> str:
+    return "-" if met is None else ("yes" if met else "**no**")
+
+
+def latency_lines(doc: dict) -> list[str]:
+    """Terminal summary of a latency result."""
+    lines = [f"{'config':<26} {'steps':>6} {'e2e p50':>8} {'p95':>7} {'p99':>7} {'max':>7}  {'model p50':>9} "
+             f"{'ovh p99':>7}  {'GFLOP/s':>7}"]
+    for c in doc["configs"]:
+        e, m, o = c["e2e_ms"], c["model_ms"], c["overhead_ms"]
+        lines.append(f"{c['name']:<26} {c['steps']:>6} {e['p50']:>8.2f} {e['p95']:>7.2f} {e['p99']:>7.2f} "
+                     f"{e['max']:>7.2f}  {m['p50']:>9.2f} {o['p99']:>7.2f}  {c['model_gflops_per_s']:>7.1f}")
+    for t in doc["targets"]:
+        lines.append(f"target: {t['target']}: {t['measured']} -> {_yes(t['met'])}")
+    return lines
+
+
+def _machine_line(m: dict) -> str:
+    return (f"{m['cpu_model']}, {m['cores_usable']} usable cores, flags {', '.join(m['flags'])}; "
+            f"numpy {m['numpy']} (BLAS {m['blas'].get('core')}), onnxruntime {m['onnxruntime']}, "
+            f"torch {m.get('torch')}, Python {m['python']}")
+
+
+def latency_markdown(doc: dict) -> list[str]:
+    out = [f"### Latency per 50 Hz step ({doc['started']})", "",
+           f"Machine: {_machine_line(doc['machine'])}. Load average at start {doc['machine']['load_average']}, "
+           f"at end {doc['load_average_end']}.", ""]
+    for name, info in doc["models"].items():
+        out.append(f"- **{name}**: {info['source']}; {info['flops']['total'] / 1e9:.3f} GFLOP per inference.")
+    out += ["", "| configuration | steps | e2e p50 | p95 | p99 | max | model-only p50 / p99 | overhead p50 / p99 "
+                "| model GFLOP/s | target (e2e p99) | met? |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+    for c in doc["configs"]:
+        e, m, o = c["e2e_ms"], c["model_ms"], c["overhead_ms"]
+        t = _config_target(c)
+        met = None if t is None else e["p99"] <= t
+        tgt = f"<= {t:g} ms" if t is not None else "reference"
+        out.append(f"| {c['name']} | {c['steps']} | {e['p50']:.2f} | {e['p95']:.2f} | {e['p99']:.2f} | "
+                   f"{e['max']:.2f} | {m['p50']:.2f} / {m['p99']:.2f} | {o['p50']:.2f} / {o['p99']:.2f} | "
+                   f"{c['model_gflops_per_s']:.1f} | {tgt} | {_yes(met)} |")
+    lo, hi = doc["paper_orin_infer_ms"]
+    out.append(f"| paper (Sec. V): PRML2 on an NVIDIA Orin GPU | - | - | - | - | - | {lo:g}-{hi:g} (inference) "
+               "| - | - | ~30 Hz | - |")
+    out += ["", "Times in ms. e2e: from the receipt of the CAN frame that completes a 50 Hz row to the EKF output "
+                "(decode, assemble, window, ONNX/torch model, guard, EKF). `torch-*`: the plain PyTorch eager pipeline "
+                "(same frames, interleaved in the same run).", "",
+            "| hardware | 1 thread | 2 threads |", "|---|---:|---:|"]
+    g = doc["gemm"]
+    out.append("| NumPy fp32 GEMM on the paper model's shapes [GFLOP/s] | "
+               + " | ".join(f"{g[k]['flop_weighted_gflops']:.1f}" if k in g else "-" for k in ("1", "2")) + " |")
+    fr = {f["name"]: f for f in doc["fraction_of_gemm"]}
+    for model in doc["models"]:
+        for rt in ("onnx", "torch"):
+            cells = []
+            for k in ("1", "2"):
+                f = fr.get(f"{model}-{rt}-fp32-{k}t")
+                cells.append(f"{f['model_gflops_per_s']:.1f} ({100 * f['fraction']:.0f} %)" if f else "-")
+            out.append(f"| {model} {rt} fp32 model rate [GFLOP/s] (fraction of GEMM) | " + " | ".join(cells) + " |")
+    for r in doc["ratios"]:
+        out.append(f"| {r['model']}: torch eager / runtime, {r['threads']} thread(s) | e2e p50 {r['e2e_p50']:.2f}x, "
+                   f"p99 {r['e2e_p99']:.2f}x | model p50 {r['model_p50']:.2f}x |")
+    rm = doc.get("int8_rmse") or {}
+    for model, res in rm.items():
+        if not res:
+            continue
+        for label, r in res.items():
+            ch = ", ".join(f"{k} {100 * v:+.1f} %" for k, v in r["relative_change"].items())
+            out.append(f"| {model} {label} z RMSE change vs fp32 ({r['n_windows']} test windows) | {ch} | |")
+    return out
+
+
+def throughput_markdown(replay: dict | None, training: dict | None) -> list[str]:
+    out = ["### Throughput", "", "| measurement | value | target | met? |", "|---|---:|---:|---|"]
+    if replay:
+        r = replay
+        out.append(f"| replay of a {r['drive_minutes']:g}-minute drive, {r['model']} model ({r['started']}, load "
+                   f"{r['machine']['load_average']}) | {r['x_realtime']:.1f} x real time "
+                   f"({r['rows_per_s']:.0f} rows/s) "
+                   f"| >= {tg.REPLAY_X_REALTIME:g} x | {_yes(r['x_realtime'] >= tg.REPLAY_X_REALTIME)} |")
+        rss = r["rss"]
+        out.append(f"| RSS over the replay: start {rss['start_mib']:.0f} MiB, half-way {rss['half_mib']:.0f}, end "
+                   f"{rss['end_mib']:.0f}, peak {rss['peak_mib']:.0f} | growth in the 2nd half "
+                   f"{rss['second_half_growth_mib']:.1f} MiB ({100 * rss['second_half_growth_fraction']:.1f} %) | "
+                   f"<= {100 * tg.RSS_GROWTH_FRACTION:g} % (flat) | {_yes(rss['flat'])} |")
+    if training:
+        for p in training["presets"]:
+            out.append(f"| training throughput, {p['preset']} preset, batch {p['batch_size']} "
+                       f"({training['started']}) | pretraining {p['pretrain_windows_per_s']:.1f} windows/s, "
+                       f"EKF fine-tuning {p['finetune_windows_per_s']:.1f} windows/s | - | - |")
+    return out
+
+
+def targets_markdown(latency: dict | None) -> list[str]:
+    if not latency:
+        return []
+    out = ["### Targets (issue 7, 2 cores of this machine)", "", "| target | measured | met? | configuration |",
+           "|---|---|---|---|"]
+    for t in latency["targets"]:
+        out.append(f"| {t['target']} | {t['measured']} | {_yes(t['met'])} | {t['config'] or '-'} |")
+    return out
+
+
+def update_readme() -> None:
+    """Replace the block between the result markers in ``benchmarks/README.md`` with the current results."""
+    latency, replay, training = _load("latency"), _load("replay"), _load("training")
+    block: list[str] = []
+    if latency:
+        block += targets_markdown(latency) + [""] + latency_markdown(latency) + [""]
+    if replay or training:
+        block += throughput_markdown(replay, training) + [""]
+    text = README.read_text() if README.is_file() else f"# Benchmarks\n\n{START}\n{END}\n"
+    if START not in text or END not in text:
+        text = text.rstrip() + f"\n\n{START}\n{END}\n"
+    head, rest = text.split(START, 1)
+    _, tail = rest.split(END, 1)
+    README.write_text(head + START + "\n" + "\n".join(block) + "\n" + END + tail)

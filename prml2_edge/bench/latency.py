@@ -1,0 +1,115 @@
+"""End-to-end latency per 50 Hz step of the real runtime :class:`~prml2_edge.runtime.pipeline.Pipeline`.
+
+Each CAN frame goes through :meth:`Pipeline.step` exactly as a live bus delivers it (decode ->
+assemble -> window -> ONNX inference -> physics guard -> EKF -> sinks); the pipeline's own
+:class:`~prml2_edge.runtime.latency.LatencyRecorder` times every 50 Hz row from the moment
+the frame that completed it was received to the moment the sinks had the result
+(``end_to_end``) and the ONNX call alone (``infer``). Only rows with an inference count (with
+stride 1 that is every row once the window is full); ``overhead = end_to_end - infer`` per row
+is everything outside the model. The first ``warmup_steps`` such rows are not counted.
+"""
+
+from __future__ import annotations
+
+import gc
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import can
+import numpy as np
+
+from prml2_edge.runtime.initial_pose import InitialPose
+from prml2_edge.runtime.pipeline import Pipeline
+
+QUANTILES = (50, 95, 99)
+
+
+def summarize(ms: np.ndarray) -> dict:
+    """``{"p50", "p95", "p99", "max", "mean", "count"}`` of durations [ms] (NaN-free; empty -> count 0)."""
+    ms = np.asarray(ms, dtype=np.float64)
+    if ms.size == 0:
+        return {"count": 0}
+    p = np.percentile(ms, QUANTILES)
+    out = {f"p{q}": float(v) for q, v in zip(QUANTILES, p, strict=True)}
+    out.update(max=float(ms.max()), mean=float(ms.mean()), count=int(ms.size))
+    return out
+
+
+@dataclass
+class StepSamples:
+    """Per 50 Hz row with an inference: end-to-end, model-only and overhead durations [ms]."""
+
+    e2e_ms: list[float] = field(default_factory=list)
+    model_ms: list[float] = field(default_factory=list)
+    wall_s: float = 0.0  # wall time of the frames fed, rows without inference included
+    rows: int = 0  # every 50 Hz row produced
+
+    def extend(self, other: StepSamples) -> None:
+        self.e2e_ms.extend(other.e2e_ms)
+        self.model_ms.extend(other.model_ms)
+        self.wall_s += other.wall_s
+        self.rows += other.rows
+
+    def summary(self) -> dict:
+        e2e = np.asarray(self.e2e_ms)
+        model = np.asarray(self.model_ms)
+        return {"e2e_ms": summarize(e2e), "model_ms": summarize(model), "overhead_ms": summarize(e2e - model)}
+
+
+def open_session_model(path: str | Path, threads: int = 1, spinning: bool | None = None):
+    """The runtime's :class:`OnnxModel` for ``path``; ``spinning`` True re-creates its session with
+    onnxruntime's intra-op thread spinning on (the runtime default is off), for comparison."""
+    from prml2_edge.runtime.inference import OnnxModel
+
+    model = OnnxModel(path, threads=threads)
+    if spinning:
+        import onnxruntime as ort
+
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = int(threads)
+        opts.inter_op_num_threads = 1
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "1")
+        opts.log_severity_level = 3
+        model.session = ort.InferenceSession(str(model.path), sess_options=opts, providers=model.providers)
+    return model
+
+
+def build_pipeline(model, initial_pose: InitialPose, signal_map: str = "prml2_onboard") -> Pipeline:
+    """A runtime pipeline (no sinks) around an already-open model (``OnnxModel`` or a stand-in)."""
+    return Pipeline.build(map=signal_map, model=model, initial_pose=initial_pose)
+
+
+def measure_steps(pipeline: Pipeline, frames: Iterable[can.Message], skip: int = 0) -> StepSamples:
+    """Feed ``frames`` to ``pipeline`` as fast as it takes them; per-row samples (first ``skip`` rows with an
+    inference dropped). The pipeline may already have seen earlier frames of the same stream."""
+    lat = pipeline.latency
+    marks: list[tuple[int, int]] = []  # (end_to_end index, infer index) of rows with an inference
+    rows = 0
+    seen = 0
+    gc.collect()
+    t0 = time.perf_counter()
+    for msg in frames:
+        n_e2e, n_inf = lat.count("end_to_end"), lat.count("infer")
+        outs = pipeline.step(msg, time.perf_counter_ns())
+        if not outs:
+            continue
+        rows += len(outs)
+        for i, out in enumerate(outs):
+            if out.inferred:
+                seen += 1
+                if seen > skip:
+                    marks.append((n_e2e + i, n_inf))
+                n_inf += 1
+    wall = time.perf_counter() - t0
+    e2e_all = lat.samples_ms("end_to_end")
+    inf_all = lat.samples_ms("infer")
+    samples = StepSamples(wall_s=wall, rows=rows)
+    for i_e2e, i_inf in marks:
+        if i_e2e < e2e_all.size and i_inf < inf_all.size:
+            samples.e2e_ms.append(float(e2e_all[i_e2e]))
+            samples.model_ms.append(float(inf_all[i_inf]))
+    return samples
