@@ -57,11 +57,49 @@ class _RssProgress:
             self.samples.append((self.frames, time.perf_counter() - self.t0, rss_mib()))
 
 
+def replay_once(log_path: Path, pose, duration_s: float, model_path: str, threads: int, rss_every: int) -> dict:
+    """One replay of the whole log: throughput, where the time per row goes, RSS over the run."""
+    pipeline = build_pipeline(open_session_model(model_path, threads=threads), pose)
+    progress = _RssProgress(rss_every)
+    rss0 = rss_mib()
+    load0 = load_average()
+    t0 = time.perf_counter()
+    with LogReplay(log_path) as source:
+        run_source(pipeline, source, progress=progress)
+        sent, received, error = source.sent, source.received, source.error
+    wall_s = time.perf_counter() - t0
+    summ = pipeline.summary()
+    rows = max(summ["rows"], 1)
+    lat = summ["latency"]
+    frames_per_row = received / rows
+    per_row = {"infer": lat["infer"].get("mean_ms", 0.0) * summ["inferences"] / rows,
+               "guard": lat["guard"].get("mean_ms", 0.0) * summ["inferences"] / rows,
+               "filter": lat["filter"].get("mean_ms", 0.0),
+               "decode": lat["decode"].get("mean_ms", 0.0) * frames_per_row,
+               "assemble": lat["assemble"].get("mean_ms", 0.0) * frames_per_row}
+    per_row["other (bus, feeder thread, Python loop)"] = 1e3 * wall_s / rows - sum(per_row.values())
+    rss = [s[2] for s in progress.samples] or [rss0]
+    half = rss[len(rss) // 2]
+    growth = rss[-1] - half
+    return {
+        "threads": threads, "stride": 1, "frames_sent": sent, "frames_received": received, "source_error": error,
+        "rows": summ["rows"], "inferences": summ["inferences"], "frames_balanced": summ["frames"]["balanced"],
+        "wall_s": wall_s, "x_realtime": duration_s / wall_s, "rows_per_s": summ["rows"] / wall_s,
+        "frames_per_s": received / wall_s, "per_row_ms": per_row, "load_average": [load0, load_average()],
+        "latency": lat,
+        "rss": {"before_mib": rss0, "start_mib": rss[0], "half_mib": half, "end_mib": rss[-1], "peak_mib": max(rss),
+                "second_half_growth_mib": growth, "second_half_growth_fraction": growth / half,
+                "flat": growth / half <= targets.RSS_GROWTH_FRACTION,
+                "samples": [{"frames": f, "wall_s": round(w, 3), "rss_mib": round(r, 2)}
+                            for f, w, r in progress.samples]},
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--minutes", type=float, default=10.0, help="drive length [min]")
     ap.add_argument("--model", default="edge", help="edge or paper (benchmarks/bench_models.py)")
-    ap.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
+    ap.add_argument("--threads", default="1,2", help="onnxruntime intra-op thread counts, one replay each")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--rss-every", type=int, default=5000, help="frames between RSS samples")
     ap.add_argument("--out", default=str(HERE / "results" / "replay.json"))
@@ -73,44 +111,25 @@ def main(argv: list[str] | None = None) -> int:
     LOG_DIR.mkdir(parents=True, exist_ok=True)
     log_path = LOG_DIR / f"replay_{args.minutes:g}min_s{args.seed}.log"
     log_path, pose, duration_s = simulate_log(args.minutes * 60.0, log_path, seed=args.seed)
-    pipeline = build_pipeline(open_session_model(bm["fp32"], threads=args.threads), pose)
-    progress = _RssProgress(args.rss_every)
-    rss0 = rss_mib()
-    t0 = time.perf_counter()
-    with LogReplay(log_path) as source:
-        run_source(pipeline, source, progress=progress)
-        sent, received, error = source.sent, source.received, source.error
-    wall_s = time.perf_counter() - t0
-    summ = pipeline.summary()
-    rss = [s[2] for s in progress.samples] or [rss0]
-    half = rss[len(rss) // 2]
-    growth = rss[-1] - half
+    runs = []
+    for n in [int(t) for t in args.threads.split(",")]:
+        r = replay_once(log_path, pose, duration_s, bm["fp32"], n, args.rss_every)
+        runs.append(r)
+        rss = r["rss"]
+        print(f"{n} thread(s): replayed {args.minutes:g} min ({r['frames_sent']} frames, {r['rows']} rows) in "
+              f"{r['wall_s']:.1f} s: {r['x_realtime']:.1f} x real time; RSS {rss['start_mib']:.0f} -> "
+              f"{rss['half_mib']:.0f} -> {rss['end_mib']:.0f} MiB; per row [ms]: "
+              + ", ".join(f"{k} {v:.3f}" for k, v in r["per_row_ms"].items()))
     doc = {
         "benchmark": "replay",
         "started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(t_start)),
         "machine": machine, "load_average_end": load_average(),
         "model": args.model, "model_source": bm["source"], "torch_imported": "torch" in sys.modules,
-        "threads": args.threads, "stride": 1,
-        "drive_minutes": args.minutes, "data_s": duration_s, "frames_sent": sent, "frames_received": received,
-        "source_error": error, "rows": summ["rows"], "inferences": summ["inferences"],
-        "frames_balanced": summ["frames"]["balanced"],
-        "wall_s": wall_s, "x_realtime": duration_s / wall_s, "rows_per_s": summ["rows"] / wall_s,
-        "frames_per_s": received / wall_s,
-        "latency": summ["latency"],
-        "rss": {"before_mib": rss0, "start_mib": rss[0], "half_mib": half, "end_mib": rss[-1], "peak_mib": max(rss),
-                "second_half_growth_mib": growth, "second_half_growth_fraction": growth / half,
-                "flat": growth / half <= targets.RSS_GROWTH_FRACTION,
-                "samples": [{"frames": f, "wall_s": round(w, 3), "rss_mib": round(r, 2)}
-                            for f, w, r in progress.samples]},
+        "drive_minutes": args.minutes, "data_s": duration_s, "log": str(log_path), "runs": runs,
     }
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(doc, indent=1))
-    lat = summ["latency"]
-    print(f"replayed {args.minutes:g} min ({sent} frames, {summ['rows']} rows) in {wall_s:.1f} s: "
-          f"{doc['x_realtime']:.1f} x real time; RSS {rss[0]:.0f} -> {half:.0f} -> {rss[-1]:.0f} MiB "
-          f"(peak {max(rss):.0f}); infer p50 {lat['infer'].get('p50_ms', float('nan')):.2f} ms, "
-          f"decode p50 {lat['decode'].get('p50_ms', float('nan')) * 1e3:.0f} us per frame")
     report.update_readme()
     print(f"wrote {out}")
     return 0

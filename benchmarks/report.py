@@ -100,16 +100,17 @@ def latency_markdown(doc: dict) -> list[str]:
 def throughput_markdown(replay: dict | None, training: dict | None) -> list[str]:
     out = ["### Throughput", "", "| measurement | value | target | met? |", "|---|---:|---:|---|"]
     if replay:
-        r = replay
-        out.append(f"| replay of a {r['drive_minutes']:g}-minute drive, {r['model']} model ({r['started']}, load "
-                   f"{r['machine']['load_average']}) | {r['x_realtime']:.1f} x real time "
-                   f"({r['rows_per_s']:.0f} rows/s) "
-                   f"| >= {tg.REPLAY_X_REALTIME:g} x | {_yes(r['x_realtime'] >= tg.REPLAY_X_REALTIME)} |")
-        rss = r["rss"]
-        out.append(f"| RSS over the replay: start {rss['start_mib']:.0f} MiB, half-way {rss['half_mib']:.0f}, end "
-                   f"{rss['end_mib']:.0f}, peak {rss['peak_mib']:.0f} | growth in the 2nd half "
-                   f"{rss['second_half_growth_mib']:.1f} MiB ({100 * rss['second_half_growth_fraction']:.1f} %) | "
-                   f"<= {100 * tg.RSS_GROWTH_FRACTION:g} % (flat) | {_yes(rss['flat'])} |")
+        for r in replay["runs"]:
+            rss = r["rss"]
+            where = ", ".join(f"{k} {v:.2f}" for k, v in r["per_row_ms"].items())
+            out.append(f"| replay of a {replay['drive_minutes']:g}-minute drive, {replay['model']} model, "
+                       f"{r['threads']} thread(s), stride 1 ({replay['started']}, load {r['load_average'][0]}) "
+                       f"| {r['x_realtime']:.1f} x real time ({r['rows_per_s']:.0f} rows/s; per row [ms]: {where}) "
+                       f"| >= {tg.REPLAY_X_REALTIME:g} x | {_yes(r['x_realtime'] >= tg.REPLAY_X_REALTIME)} |")
+            out.append(f"| RSS over that replay: start {rss['start_mib']:.0f} MiB, half-way {rss['half_mib']:.0f}, "
+                       f"end {rss['end_mib']:.0f}, peak {rss['peak_mib']:.0f} | growth in the 2nd half "
+                       f"{rss['second_half_growth_mib']:.1f} MiB ({100 * rss['second_half_growth_fraction']:.1f} %) "
+                       f"| <= {100 * tg.RSS_GROWTH_FRACTION:g} % (flat) | {_yes(rss['flat'])} |")
     if training:
         for p in training["presets"]:
             out.append(f"| training throughput, {p['preset']} preset, batch {p['batch_size']} "

@@ -71,7 +71,7 @@ def measure(preset_name: str, dataset, windows: int, val_windows: int, threads: 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--presets", default="edge,paper")
-    ap.add_argument("--windows", type=int, default=256, help="training windows per epoch")
+    ap.add_argument("--windows", type=int, default=500, help="training windows per epoch")
     ap.add_argument("--paper-windows", type=int, default=64, help="training windows per epoch for the paper preset")
     ap.add_argument("--val-windows", type=int, default=16)
     ap.add_argument("--threads", type=int, default=2)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import gc
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -58,13 +58,15 @@ class StepSamples:
         return {"e2e_ms": summarize(e2e), "model_ms": summarize(model), "overhead_ms": summarize(e2e - model)}
 
 
-def open_session_model(path: str | Path, threads: int = 1, spinning: bool | None = None):
-    """The runtime's :class:`OnnxModel` for ``path``; ``spinning`` True re-creates its session with
-    onnxruntime's intra-op thread spinning on (the runtime default is off), for comparison."""
+def open_session_model(path: str | Path, threads: int = 1, spinning: bool | None = None,
+                       providers: Sequence[str] = ("cpu",)):
+    """The runtime's :class:`OnnxModel` for ``path`` (``providers`` as the runtime takes them: ``tensorrt``,
+    ``cuda``, ``cpu``); ``spinning`` True re-creates its CPU session with onnxruntime's intra-op thread
+    spinning on (the runtime default is off), for comparison."""
     from prml2_edge.runtime.inference import OnnxModel
 
-    model = OnnxModel(path, threads=threads)
-    if spinning:
+    model = OnnxModel(path, threads=threads, providers=providers)
+    if spinning and model.providers == ["CPUExecutionProvider"]:
         import onnxruntime as ort
 
         opts = ort.SessionOptions()

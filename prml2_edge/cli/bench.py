@@ -52,6 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-gemm", action="store_true", help="skip the NumPy fp32 GEMM reference")
     parser.add_argument("--spinning", action="store_true",
                         help="onnxruntime thread spinning on (the runtime's default is off)")
+    parser.add_argument("--providers", default="cpu", metavar="P[,P]",
+                        help="onnxruntime execution providers in order of preference: tensorrt, cuda, cpu "
+                             "(default cpu; on a Jetson try tensorrt,cuda,cpu)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
 
 
@@ -91,6 +94,7 @@ def run(args: argparse.Namespace) -> int:
     if not precisions:
         raise ConfigError("nothing to measure: int8 needs the onnx package and fp32 was not asked for")
 
+    providers = [p.strip() for p in args.providers.split(",") if p.strip()]
     replay = simulated_frames(args.seconds, seed=args.seed)
     machine = machine_info()
     gemm: dict[int, dict] = {}
@@ -105,7 +109,8 @@ def run(args: argparse.Namespace) -> int:
                     variants.append(("int8", quantize_prml2(path, Path(tmp) / f"{path.stem}_int8.onnx")))
             for precision, variant_path in variants:
                 for n_threads in threads:
-                    model = open_session_model(variant_path, threads=n_threads, spinning=args.spinning)
+                    model = open_session_model(variant_path, threads=n_threads, spinning=args.spinning,
+                                               providers=providers)
                     label = _label(model)
                     cfg = dict(model.metadata.config)
                     pipeline = build_pipeline(model, replay.initial_pose)
@@ -114,7 +119,8 @@ def run(args: argparse.Namespace) -> int:
                     record = {
                         "name": f"{label}-{precision}-{n_threads}t",
                         "model": str(path), "preset": model.metadata.preset, "precision": precision,
-                        "threads": n_threads, "spinning": bool(args.spinning), "steps": len(samples.e2e_ms),
+                        "threads": n_threads, "spinning": bool(args.spinning), "providers": model.providers,
+                        "steps": len(samples.e2e_ms),
                         **samples.summary(),
                         "deadline_ms": DEADLINE_MS,
                         "deadline_misses": int(sum(v > DEADLINE_MS for v in samples.e2e_ms)),
