@@ -144,3 +144,36 @@ def test_evaluate_segments_reports_rmse_osd_and_dead_reckoning(toy_data):
     assert np.isnan(report.osd_z_rmse["v_y_mps"]) and report.osd_z_rmse["v_x_mps"] < 0.1
     assert report.dr_summary()["n_windows"] == 3
     assert 0.0 <= report.guard_fire_rate <= 1.0
+
+
+def test_exploding_steps_are_skipped_and_counted(toy_data, tmp_path):
+    wild = toy_windows(n_drives=2, n=1200, stride=25)[1]
+    wild.onboard = wild.onboard.copy()
+    wild.onboard[900:1000] *= 1e7  # windows over these rows give gradients far beyond the running norm
+    data = replace(toy_data, train=wild)
+    cfg = replace(CFG, epochs=1, max_train_windows=0, finetune=False, batch_size=4)
+    result = fit(data, tmp_path / "wild", preset="tiny", model_cfg=PRESET.model, train_cfg=cfg, progress=False)
+    assert result.counters["skipped_exploding"] > 0
+    assert result.counters["skipped_exploding"] < result.counters["steps"] // 2
+
+
+def test_cli_train_on_a_folder_of_csv_drives(tmp_path, capsys):
+    from prml2_edge.cli.main import main
+    from prml2_edge.data.revsted import write_drive_csv
+
+    data_dir = tmp_path / "data"
+    data_dir.mkdir()
+    for i in range(2):
+        write_drive_csv(toy_drive(3000, seed=20 + i, name=f"toy_{i}"), data_dir / f"toy_{i}.csv")
+    out = tmp_path / "run"
+    code = main(["train", "--data", str(data_dir), "--out", str(out), "--preset", "tiny", "--epochs", "2",
+                 "--max-train-windows", "16", "--eval-stride", "5"])
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "1 pretraining + 1 fine-tuning epochs" in text and "val z RMSE" in text and "OSD baseline" in text
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["val"]["n_samples"] == 2 * 300 and summary["train_config"]["epochs"] == 2
+    assert all(np.isfinite(v) for v in summary["val"]["z_rmse"].values())
+    assert (out / "best.pt").is_file() and (out / "loss_curve.png").is_file()
+    assert main(["train", "--data", str(tmp_path / "nope"), "--out", str(out), "--preset", "tiny"]) == 1
+    assert "dataset folder not found" in capsys.readouterr().err

@@ -36,7 +36,7 @@ class ModelConfig:
     dropout: float = 0.0
     window_len: int = schema.WINDOW_LEN  # L [samples]
     encoder_len: int = schema.ENCODER_LEN  # H [samples]
-    var_floor: float = 1e-4
+    var_floor: float = 1e-6
     num_signals: int = schema.NUM_SIGNALS
     num_states: int = schema.NUM_STATES
 
@@ -79,7 +79,7 @@ class TrainConfig:
     seed: int = 0
     num_threads: int = 2
     grad_clip: float = 10.0  # global grad-norm clip
-    explode_grad_norm: float = 1e4  # a step whose grad norm exceeds this (or is not finite) is skipped
+    explode_ratio: float = 1e3  # a step whose grad norm exceeds this times the running (EMA) norm is skipped
     max_train_windows: int = 0  # 0: all; >0 subsample the training windows each epoch (deterministic)
 
     def pretrain_epochs(self) -> int:
@@ -123,7 +123,7 @@ PRESETS: dict[str, Preset] = {
     "edge": Preset(
         "edge",
         ModelConfig(d_model=64, n_heads=4, n_layers=2, d_ff=128),
-        TrainConfig(epochs=10, lr=1e-3, window_stride=25),
+        TrainConfig(epochs=10, batch_size=64, lr=1e-3, window_stride=30),
         "the default that ships: d=64, 4 heads, 2 layers; trains on a 2-core CPU in < 20 min",
     ),
     "tiny": Preset(

@@ -14,9 +14,10 @@ Validation every epoch on the validation windows (NLL, position term, z RMSE); t
 checkpoint of the *last stage that ran* is kept as ``best.pt`` (lowest validation NLL for
 pretraining, lowest validation NLL + position term for fine-tuning, so the shipped PRML2 model
 is always a fine-tuned one). ``last.pt`` (with the optimizer) is written every epoch for
-resuming. Steps whose gradient norm is not finite or exceeds ``explode_grad_norm`` are skipped
-and counted. Seeded: the weights depend only on the seed, the data and the world size; each
-epoch's shuffle is drawn from ``(seed, epoch)``, so a resumed run equals an uninterrupted one.
+resuming. Steps whose gradient norm is not finite, or exceeds ``explode_ratio`` times its running
+(exponential moving, log-domain) average, are skipped and counted. Seeded: the weights depend
+only on the seed, the data and the world size; each epoch's shuffle is drawn from
+``(seed, epoch)``, so a resumed run equals an uninterrupted one.
 """
 
 from __future__ import annotations
@@ -260,7 +261,8 @@ def fit(
         model.init_skip(*data.skip_rows)
     guard = PhysicsGuard(mu=train_cfg.mu)
     optimizer = torch.optim.Adam(model.parameters(), lr=train_cfg.lr, weight_decay=train_cfg.weight_decay)
-    counters = {"steps": 0, "skipped_nonfinite": 0, "skipped_exploding": 0}
+    counters: dict[str, float] = {"steps": 0, "skipped_nonfinite": 0, "skipped_exploding": 0,
+                                  "grad_log_ema": math.nan}
     start_epoch = 0
     best_score = math.inf
     history: list[dict] = []
@@ -340,11 +342,14 @@ def fit(
             grad_norm = torch.nn.utils.clip_grad_norm_(params, train_cfg.grad_clip).item()  # after all-reduce
             # the decision uses the gradient norm only: after DDP's all-reduce it is the same on every
             # rank (a NaN loss on one rank makes the shared gradients NaN), so all ranks agree.
+            ema = counters["grad_log_ema"]
             if not math.isfinite(grad_norm):
                 counters["skipped_nonfinite"] += 1
-            elif grad_norm > train_cfg.explode_grad_norm:
+            elif math.isfinite(ema) and grad_norm > train_cfg.explode_ratio * math.exp(ema):
                 counters["skipped_exploding"] += 1
             else:
+                log_g = math.log(max(grad_norm, 1e-30))
+                counters["grad_log_ema"] = log_g if not math.isfinite(ema) else 0.9 * ema + 0.1 * log_g
                 optimizer.step()
                 sums += torch.tensor([loss.item() * len(idx), nll.mean().item() * len(idx),
                                       float(pos.item()) * len(idx), len(idx)], dtype=torch.float64)
@@ -372,7 +377,7 @@ def fit(
             "train_time_s": train_time,
             "epoch_time_s": time.monotonic() - t_epoch,
             "train_windows_per_s": sums[3].item() / max(train_time, 1e-9),
-            **{k: int(v) for k, v in counters.items()},
+            **{k: int(v) for k, v in counters.items() if k != "grad_log_ema"},
         }
         score = val["val_nll"] + (val["val_pos"] if stage == FINETUNE else 0.0)
         record["val_objective"] = score
