@@ -84,10 +84,22 @@ def _torch_from_onnx(path: Path) -> tuple[Prml2Model, dict]:
     return model.eval(), {"config": asdict(cfg), "weights_loaded": loaded, "weights_total": len(state)}
 
 
-def prepare(name: str, out_dir: Path = MODEL_DIR, seed: int = 0) -> BenchModel:
-    """Export (or find) model ``name`` and its int8 variants under ``out_dir``."""
+def prepare(name: str, out_dir: Path = MODEL_DIR, seed: int = 0, checkpoint: str | Path | None = None) -> BenchModel:
+    """Export (or find) model ``name`` and its int8 variants under ``out_dir``.
+
+    ``checkpoint``: a trained checkpoint (``runs/<name>/best.pt``) to export instead; its torch model is
+    then the exact twin of the ONNX graph.
+    """
     out_dir.mkdir(parents=True, exist_ok=True)
-    if name == "edge" and SHIPPED_EDGE.is_file():
+    if checkpoint is not None:
+        from prml2_edge.training.checkpoint import load_model
+
+        model, ckpt = load_model(checkpoint)
+        fp32 = export_onnx(model, metadata_for(model, ckpt), out_dir / f"{name}_trained.onnx")
+        trained = True
+        source = (f"{ckpt.get('preset')} preset trained checkpoint {checkpoint} (epoch {ckpt.get('epoch')}, "
+                  f"stage {ckpt.get('stage')}), exported here")
+    elif name == "edge" and SHIPPED_EDGE.is_file():
         fp32 = SHIPPED_EDGE
         model, info = _torch_from_onnx(fp32)
         trained, source = True, f"shipped {SHIPPED_EDGE.relative_to(REPO)}"
@@ -109,8 +121,8 @@ def prepare(name: str, out_dir: Path = MODEL_DIR, seed: int = 0) -> BenchModel:
         model.eval()
         fp32 = export_onnx(model, metadata_for(model, {"preset": name}), out_dir / f"{name}.onnx")
         trained = False
-    int8 = quantize_prml2(fp32, out_dir / f"{name}_int8.onnx")
-    int8_plain = quantize_int8(fp32, out_dir / f"{name}_int8_plain.onnx")
+    int8 = quantize_prml2(fp32, out_dir / f"{fp32.stem}_int8.onnx")
+    int8_plain = quantize_int8(fp32, out_dir / f"{fp32.stem}_int8_plain.onnx")
     return BenchModel(name, fp32, int8, int8_plain, model.eval(), asdict(model.cfg), trained, source)
 
 
@@ -136,5 +148,6 @@ def paper_config() -> dict:
 
 
 if __name__ == "__main__":
-    bm = prepare(sys.argv[1], seed=int(sys.argv[2]) if len(sys.argv) > 2 else 0)
+    bm = prepare(sys.argv[1], seed=int(sys.argv[2]) if len(sys.argv) > 2 else 0,
+                 checkpoint=sys.argv[3] if len(sys.argv) > 3 else None)
     print(json.dumps({"fp32": str(bm.fp32), "int8": str(bm.int8), "source": bm.source, "trained": bm.trained}))

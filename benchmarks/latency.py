@@ -124,6 +124,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warmup-steps", type=int, default=50, help="inference steps not counted")
     ap.add_argument("--chunk-s", type=float, default=2.0, help="interleaving chunk [s of drive]")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--edge-checkpoint", default=None,
+                    help="trained edge checkpoint (e.g. runs/edge/best.pt) to export and measure instead of the "
+                         "shipped ONNX file (its torch twin then has the exact weights)")
     ap.add_argument("--no-bf16", action="store_true", help="skip the torch bf16 reference of the paper-size model")
     ap.add_argument("--quick", action="store_true", help="short drives, for development (not for the table)")
     ap.add_argument("--out", default=str(RESULTS / "latency.json"))
@@ -137,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     threads = [int(t) for t in args.threads.split(",")]
     configs, model_info, gemm, rmse = [], {}, {}, {}
     for name in models:
-        bm = bench_models.prepare(name, seed=args.seed)
+        bm = bench_models.prepare(name, seed=args.seed, checkpoint=args.edge_checkpoint if name == "edge" else None)
         model_info[name] = {"source": bm.source, "trained": bm.trained, "config": bm.config,
                             "flops": inference_flops(bm.config), "fp32": str(bm.fp32), "int8": str(bm.int8)}
         seconds = args.seconds_edge if name == "edge" else args.seconds_paper

@@ -101,13 +101,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--model", default="edge", help="edge or paper (benchmarks/bench_models.py)")
     ap.add_argument("--threads", default="1,2", help="onnxruntime intra-op thread counts, one replay each")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--checkpoint", default=None, help="trained checkpoint to export and use (see bench_models.py)")
     ap.add_argument("--rss-every", type=int, default=5000, help="frames between RSS samples")
     ap.add_argument("--out", default=str(HERE / "results" / "replay.json"))
     args = ap.parse_args(argv)
 
     t_start = time.time()
     machine = machine_info()
-    bm = prepared_paths(args.model, seed=args.seed)  # torch stays out of this process
+    bm = prepared_paths(args.model, seed=args.seed, checkpoint=args.checkpoint)  # torch stays out of this process
     LOG_DIR.mkdir(parents=True, exist_ok=True)
     log_path = LOG_DIR / f"replay_{args.minutes:g}min_s{args.seed}.log"
     log_path, pose, duration_s = simulate_log(args.minutes * 60.0, log_path, seed=args.seed)
