@@ -1,0 +1,299 @@
+"""The paper's evaluation protocol on top of :meth:`StreamingLocalizer.run_arrays` (one code path).
+
+Segments: the time-ordered 70:10:20 ``val``/``test`` parts of every dry drive, and whole snow
+drives (``snow``). Dead reckoning (method.md "Evaluation protocol"): non-overlapping 60 s windows
+inside a segment, each starting from the true pose and dynamic state; the L - 1 rows before the
+start only fill the model's window (onboard signals a live system would already have), so the
+model is warm at the first step. Every window is one ``run_arrays`` call with GNSS fusion off.
+
+Table 1 (z RMSE) uses the model outputs the localiser consumed: the newest decoder output of
+each window, after the physics guard (the guard off only in the ablation).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from prml2_edge import schema
+from prml2_edge.ekf.numpy_ekf import default_process_noise, wrap_angle
+from prml2_edge.guard import physics_guard
+from prml2_edge.schema import EkfState
+from prml2_edge.training.osd_baseline import StandstillBias, drive_bias
+
+DR_WINDOW_S = 60.0  # dead-reckoning window [s]
+NO_GUARD_A_MAX_MPS2 = 1e9  # "guard off": an acceleration bound never reached (finite: inf / inf is NaN)
+OSD_Q_SCALES = (0.1, 0.3, 1.0, 3.0, 10.0)  # process-noise scales tried for the OSD baseline on val
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """A method to evaluate.
+
+    ``kind`` is ``"onnx"`` (``path`` an exported model) or ``"osd"`` (the OSD baseline);
+    ``guard`` False switches the acceleration bound of the physics guard off (ablation);
+    ``const_var`` (5,) replaces the model's variances (ablation "uncertainty off", and the OSD
+    baseline's measurement noise); ``q_scale`` scales the EKF process noise ``Q``.
+    """
+
+    name: str
+    kind: str
+    path: str | None = None
+    guard: bool = True
+    const_var: tuple[float, ...] | None = None
+    q_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("onnx", "osd"):
+            raise ValueError(f"model kind must be 'onnx' or 'osd', got {self.kind!r}")
+        if self.kind == "onnx" and not self.path:
+            raise ValueError(f"model {self.name!r}: an ONNX model needs a path")
+
+
+@dataclass(frozen=True)
+class WindowTask:
+    """One dead-reckoning window of a drive.
+
+    ``onboard`` (h + n, 9) [SI] with ``h`` history rows before the start; ``t_s`` (n,) [s];
+    ``z_gt`` (n, 5), ``pose_gt`` (n, 3) [x east m, y north m, psi rad] from the start on;
+    ``start`` the start row in the drive; ``mu`` road friction for the guard; ``bias`` the
+    OSD baseline's standstill biases for this drive.
+    """
+
+    split: str
+    drive: str
+    start: int
+    history: int
+    onboard: np.ndarray
+    t_s: np.ndarray
+    z_gt: np.ndarray
+    pose_gt: np.ndarray
+    mu: float
+    bias: StandstillBias
+
+    @property
+    def key(self) -> str:
+        return f"{self.split}/{self.drive}@{self.start}"
+
+    @property
+    def distance_m(self) -> float:
+        """Distance travelled over the window [m] (ground truth)."""
+        return float(np.sum(np.hypot(*np.diff(self.pose_gt[:, :2], axis=0).T)))
+
+
+@dataclass
+class WindowResult:
+    """One model on one window: estimated pose (n, 3), errors (n,), consumed model z (n, 5) (NaN where none)."""
+
+    model: str
+    task_key: str
+    split: str
+    pose: np.ndarray
+    pos_error_m: np.ndarray
+    yaw_error_rad: np.ndarray
+    distance_m: float
+    z: np.ndarray
+    guard_fired: int = 0
+    model_steps: int = 0
+
+    @property
+    def rmse_m(self) -> float:
+        return float(np.sqrt(np.mean(self.pos_error_m**2)))
+
+    @property
+    def max_error_m(self) -> float:
+        return float(np.max(self.pos_error_m))
+
+    @property
+    def drift_pct(self) -> float:
+        """Final position error over the distance travelled [%] (NaN below 1 m travelled)."""
+        return float(100.0 * self.pos_error_m[-1] / self.distance_m) if self.distance_m > 1.0 else math.nan
+
+
+def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: int = schema.WINDOW_LEN,
+                max_windows: int | None = None) -> list[WindowTask]:
+    """Non-overlapping dead-reckoning windows of ``split`` (``val``, ``test`` or ``snow``).
+
+    A window needs ``window_len - 1`` rows of history before its start; the first window of a
+    segment starts at ``max(segment start, window_len - 1)``. ``max_windows`` caps the count
+    per segment (None: all).
+    """
+    from prml2_edge.data.datasets import split_drive
+
+    steps = int(round(window_s / schema.DT_S))
+    hist = window_len - 1
+    tasks: list[WindowTask] = []
+    for drive, role in zip(dataset.drives, dataset.roles(), strict=True):
+        if not drive.has_ground_truth:
+            continue
+        if split == "snow":
+            if role != "snow":
+                continue
+            a, b = 0, len(drive)
+        elif role == "dry":
+            a, b = (int(v) for v in split_drive(drive)[split].meta["slice"])
+        else:
+            continue
+        mu = float(drive.meta.get("mu", 1.0))
+        starts = list(range(max(a, hist), b - steps + 1, steps))
+        if max_windows is not None:
+            starts = starts[:max_windows]
+        for start in starts:
+            # OSD biases from standstill before the window (causal), else from the whole drive
+            bias = drive_bias(drive.onboard[:start], drive.onboard)
+            sl = slice(start, start + steps)
+            tasks.append(WindowTask(split, drive.name, start, hist, drive.onboard[start - hist : start + steps],
+                                    drive.t_s[sl], drive.z_gt[sl], drive.pose_gt[sl], mu, bias))
+    return tasks
+
+
+# ---- running one window (worker side) ------------------------------------------------------------
+
+_ONNX_CACHE: dict[str, object] = {}
+
+
+def _onnx(path: str):
+    from prml2_edge.runtime.inference import OnnxModel
+
+    if path not in _ONNX_CACHE:
+        _ONNX_CACHE[path] = OnnxModel(path, threads=1)
+    return _ONNX_CACHE[path]
+
+
+def build_model(spec: ModelSpec, bias: StandstillBias | None = None):
+    """The runtime model of ``spec`` (an :class:`OnnxModel`, :class:`OsdModel` or a wrapper)."""
+    from prml2_edge.evaluation.models import ConstantVarianceModel, OsdModel
+
+    if spec.kind == "osd":
+        var = np.ones(schema.NUM_STATES) if spec.const_var is None else np.asarray(spec.const_var)
+        return OsdModel(var, bias)
+    model = _onnx(str(spec.path))
+    if spec.const_var is not None:
+        model = ConstantVarianceModel(model, np.asarray(spec.const_var))
+    return model
+
+
+def process_noise(model, q_scale: float = 1.0) -> np.ndarray:
+    """EKF ``Q`` (8, 8): the model's metadata ``ekf_process_noise`` (trained with it), else the default; scaled."""
+    meta_q = getattr(getattr(model, "metadata", None), "ekf_process_noise", None)
+    q = np.asarray(meta_q, dtype=np.float64) if meta_q is not None else default_process_noise(schema.DT_S)
+    return q * float(q_scale)
+
+
+def run_window(spec: ModelSpec, task: WindowTask, stride: int = 1) -> WindowResult:
+    """Dead-reckon ``task`` with ``spec`` through :meth:`StreamingLocalizer.run_arrays`."""
+    from prml2_edge.evaluation.models import RecordingModel
+    from prml2_edge.runtime.localizer import LocalizerConfig, StreamingLocalizer
+
+    model = RecordingModel(build_model(spec, task.bias))
+    loc = StreamingLocalizer(model, LocalizerConfig(stride=stride, mu=task.mu, fuse_gnss=False),
+                             process_noise=process_noise(model, spec.q_scale))
+    if not spec.guard:
+        loc.a_max_mps2 = NO_GUARD_A_MAX_MPS2  # ablation: no friction-circle bound (speed/yaw-rate bounds stay)
+    x0 = np.zeros(EkfState.DIM)
+    x0[EkfState.POS] = task.pose_gt[0, :2]
+    x0[EkfState.YAW] = task.pose_gt[0, 2]
+    x0[list(schema.Z_TO_EKF_INDEX)] = task.z_gt[0]
+    traj = loc.run_arrays(task.onboard, x0, start_index=task.history)
+    h = task.history
+    pose = traj.pose[h:]
+    pos_err = np.hypot(pose[:, 0] - task.pose_gt[:, 0], pose[:, 1] - task.pose_gt[:, 1])
+    yaw_err = np.asarray(wrap_angle(pose[:, 2] - task.pose_gt[:, 2]), dtype=np.float64)
+    # model outputs the EKF consumed: call i is the window ending at row h + i * stride (rows all valid)
+    z = np.full((len(pose), schema.NUM_STATES), np.nan)
+    if model.records:
+        idx = np.array([r[0] for r in model.records]) * stride
+        mean = np.array([r[1] for r in model.records])
+        var = np.array([r[2] for r in model.records])
+        if spec.guard:
+            mean = physics_guard(mean, var, schema.accel_limit_mps2(task.mu))[0]
+        ok = idx < len(pose)
+        z[idx[ok]] = mean[ok]
+        if spec.kind == "osd":
+            from prml2_edge.evaluation.models import OSD_MISSING
+
+            z[:, list(OSD_MISSING)] = np.nan
+    return WindowResult(spec.name, task.key, task.split, pose, pos_err, yaw_err, task.distance_m, z,
+                        int(traj.guard_fired[h:].sum()), int(traj.model_used[h:].sum()))
+
+
+def _run_pair(args: tuple[ModelSpec, WindowTask, int]) -> WindowResult:
+    return run_window(*args)
+
+
+def run_all(specs: Sequence[ModelSpec], tasks: Sequence[WindowTask], stride: int = 1, jobs: int = 1,
+            on_done: Callable[[WindowResult], None] | None = None) -> dict[str, list[WindowResult]]:
+    """Every spec on every task; ``jobs`` worker processes (1: in this process). Results per model, task order."""
+    pairs = [(spec, task, stride) for spec in specs for task in tasks]
+    out: dict[str, list[WindowResult]] = {spec.name: [] for spec in specs}
+    if jobs <= 1:
+        results = map(_run_pair, pairs)
+        for res in results:
+            out[res.model].append(res)
+            if on_done is not None:
+                on_done(res)
+        return out
+    import multiprocessing as mp
+
+    ctx = mp.get_context("fork" if os.name == "posix" else "spawn")
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
+        for res in pool.map(_run_pair, pairs, chunksize=1):
+            out[res.model].append(res)
+            if on_done is not None:
+                on_done(res)
+    return out
+
+
+# ---- tuning on the validation split -----------------------------------------------------------------
+
+def z_residual_var(results: Sequence[WindowResult], tasks: Sequence[WindowTask]) -> np.ndarray:
+    """Mean squared error (5,) [SI^2] of the consumed z against ground truth (1.0 where unavailable)."""
+    gt = {t.key: t.z_gt for t in tasks}
+    err = np.concatenate([r.z - gt[r.task_key] for r in results], axis=0)
+    ok = np.isfinite(err)
+    sq = np.where(ok, err, 0.0) ** 2
+    count = ok.sum(axis=0)
+    var = np.where(count > 0, sq.sum(axis=0) / np.maximum(count, 1), 1.0)
+    return np.maximum(var, 1e-8)
+
+
+@dataclass
+class Tuning:
+    """What was tuned on the validation split, for the report."""
+
+    notes: dict[str, dict] = field(default_factory=dict)
+
+
+def tune_osd(spec: ModelSpec, val_tasks: Sequence[WindowTask], stride: int = 1, jobs: int = 1,
+             q_scales: Sequence[float] = OSD_Q_SCALES, tuning: Tuning | None = None,
+             on_done: Callable[[WindowResult], None] | None = None) -> ModelSpec:
+    """OSD baseline: measurement variances = its z residual MSE on val, then the ``Q`` scale with the
+    lowest mean 60 s position RMSE on val."""
+    first = run_all([replace(spec, const_var=None, q_scale=1.0)], val_tasks, stride, jobs, on_done)[spec.name]
+    var = z_residual_var(first, val_tasks)
+    scores = {}
+    for q in q_scales:
+        res = run_all([replace(spec, const_var=tuple(var), q_scale=q)], val_tasks, stride, jobs, on_done)[spec.name]
+        scores[q] = float(np.mean([r.rmse_m for r in res]))
+    best = min(scores, key=scores.__getitem__)
+    if tuning is not None:
+        tuning.notes[spec.name] = {"measurement_var": var.tolist(), "q_scale": best,
+                                   "val_rmse_by_q_scale_m": {str(k): v for k, v in scores.items()}}
+    return replace(spec, const_var=tuple(float(v) for v in var), q_scale=best)
+
+
+def tune_constant_variance(spec: ModelSpec, val_tasks: Sequence[WindowTask], stride: int = 1, jobs: int = 1,
+                           tuning: Tuning | None = None,
+                           on_done: Callable[[WindowResult], None] | None = None) -> tuple[float, ...]:
+    """Ablation "uncertainty off": constant variances = the model's guarded z residual MSE on val."""
+    res = run_all([replace(spec, const_var=None)], val_tasks, stride, jobs, on_done)[spec.name]
+    var = z_residual_var(res, val_tasks)
+    if tuning is not None:
+        tuning.notes[f"{spec.name} constant variance"] = {
+            "measurement_var": var.tolist(), "val_rmse_m": float(np.mean([r.rmse_m for r in res]))}
+    return tuple(float(v) for v in var)

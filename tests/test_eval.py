@@ -1,0 +1,140 @@
+"""Evaluation protocol (issue 5): one streaming code path, metrics, report, TUM files, the CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from prml2_edge import schema
+from prml2_edge.cli.main import main
+from prml2_edge.data.datasets import generate_dataset, load_dataset
+from prml2_edge.ekf.numpy_ekf import Ekf, default_initial_covariance
+from prml2_edge.evaluation.metrics import dr_summary, z_rmse
+from prml2_edge.evaluation.protocol import ModelSpec, WindowResult, run_window, split_tasks
+from prml2_edge.evaluation.tum import read_tum, write_tum
+from prml2_edge.schema import EkfState
+from tests.runtime_models import KINEMATIC_STD, kinematic_weights, make_kinematic_model
+
+WINDOW_S = 4.0  # short dead-reckoning windows keep the drives (and the test) tiny
+RECIPE = {"name": "eval-tiny", "drives": [
+    {"name": "dry_a", "family": "mixed", "mu": 1.0, "seed": 5, "minutes": 0.8, "role": "dry"},
+    {"name": "dry_b", "family": "lateral", "mu": 0.9, "seed": 6, "minutes": 0.8, "role": "dry"},
+    {"name": "snow_a", "family": "snow", "mu": 0.3, "seed": 7, "minutes": 0.3, "role": "snow"},
+]}
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    root = tmp_path_factory.mktemp("eval")
+    data = generate_dataset(root / "data", RECIPE, workers=1, progress=False)
+    model = make_kinematic_model(root / "kinematic.onnx")
+    return data, model
+
+
+def test_windows_are_non_overlapping_and_have_history(tiny):
+    data, _ = tiny
+    ds = load_dataset(data)
+    tasks = split_tasks(ds, "test", WINDOW_S)
+    steps = int(WINDOW_S / schema.DT_S)
+    assert len(tasks) == 4  # a 9.6 s test split per dry drive holds two 4 s windows
+    for t in tasks:
+        assert t.onboard.shape == (schema.WINDOW_LEN - 1 + steps, schema.NUM_SIGNALS)
+        assert t.pose_gt.shape == (steps, 3)
+    by_drive = {}
+    for t in tasks:
+        by_drive.setdefault(t.drive, []).append(t.start)
+    for starts in by_drive.values():
+        assert all(b - a >= steps for a, b in zip(starts, starts[1:], strict=False))
+
+
+def test_run_window_matches_a_hand_written_ekf_loop(tiny):
+    """The localiser path (window -> ONNX -> guard -> EKF) equals feeding the NumPy EKF the model's z by hand."""
+    data, model = tiny
+    task = split_tasks(load_dataset(data), "test", WINDOW_S)[0]
+    res = run_window(ModelSpec("kin", "onnx", str(model)), task)
+    x0 = np.zeros(EkfState.DIM)
+    x0[EkfState.POS] = task.pose_gt[0, :2]
+    x0[EkfState.YAW] = task.pose_gt[0, 2]
+    x0[list(schema.Z_TO_EKF_INDEX)] = task.z_gt[0]
+    from prml2_edge.ekf.numpy_ekf import default_process_noise
+
+    ekf = Ekf(x0, default_initial_covariance(), default_process_noise(schema.DT_S), schema.DT_S)
+    z_all = task.onboard.astype(np.float32).astype(np.float64) @ kinematic_weights().astype(np.float64)
+    var = np.square(KINEMATIC_STD)
+    errors = [0.0]
+    for k in range(1, len(task.t_s)):
+        ekf.step(z_all[task.history + k], var)
+        errors.append(math.hypot(ekf.x[0] - task.pose_gt[k, 0], ekf.x[1] - task.pose_gt[k, 1]))
+    np.testing.assert_allclose(res.pos_error_m, errors, atol=1e-3)
+    assert res.model_steps == len(task.t_s) - 1
+    # Table 1 uses exactly the z the EKF consumed
+    np.testing.assert_allclose(res.z, z_all[task.history:], atol=1e-4)
+
+
+def test_guard_ablation_changes_a_model_that_violates_the_friction_circle(tiny, tmp_path):
+    data, _ = tiny
+    task = split_tasks(load_dataset(data), "test", WINDOW_S)[0]
+    bad = make_kinematic_model(tmp_path / "bad.onnx", bias=np.array([0.0, 0.0, 15.0, 0.0, 0.0]))
+    on = run_window(ModelSpec("on", "onnx", str(bad)), task)
+    off = run_window(ModelSpec("off", "onnx", str(bad), guard=False), task)
+    assert on.guard_fired > 0 and off.guard_fired == 0
+    assert on.model_steps == off.model_steps == len(task.t_s) - 1
+    assert np.max(np.abs(on.z[:, schema.Z.A_X])) <= 10.0 + 1e-6
+    assert np.max(np.abs(off.z[:, schema.Z.A_X])) > 14.0
+    assert not np.allclose(on.pos_error_m, off.pos_error_m)
+
+
+def test_metrics_on_known_errors():
+    err = np.linspace(0.0, 3.0, 4)  # 0, 1, 2, 3 m
+    r = WindowResult("m", "k", "test", np.zeros((4, 3)), err, np.zeros(4), 100.0, np.zeros((4, 5)))
+    assert r.rmse_m == pytest.approx(math.sqrt(14 / 4))
+    assert r.max_error_m == 3.0 and r.drift_pct == pytest.approx(3.0)
+    s = dr_summary([r, r])
+    assert s["n_windows"] == 2 and s["rmse_std_m"] == 0.0 and s["drift_mean_pct"] == pytest.approx(3.0)
+
+
+def test_tum_round_trip(tmp_path):
+    t = np.arange(5) * 0.02
+    pose = np.column_stack([np.arange(5.0), -np.arange(5.0), np.linspace(-3.0, 3.0, 5)])
+    t2, pose2 = read_tum(write_tum(tmp_path / "a.txt", t, pose))
+    np.testing.assert_allclose(t2, t)
+    np.testing.assert_allclose(pose2, pose, atol=1e-4)
+    line = (tmp_path / "a.txt").read_text().splitlines()[0].split()
+    assert len(line) == 8  # timestamp x y z qx qy qz qw
+
+
+def test_cli_writes_tables_metrics_plots_and_tum(tiny, tmp_path, capsys):
+    data, model = tiny
+    out = tmp_path / "report"
+    rc = main(["evaluate", "--data", str(data), "--models", "osd", f"PRML2={model}", "--out", str(out),
+               "--window-s", str(WINDOW_S), "--max-windows", "1"])
+    assert rc == 0
+    report = (out / "report.md").read_text()
+    for title in ("Table 1", "Table 2", "Table 3"):
+        assert title in report
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert set(metrics["models"]) == {"OSD-Baseline", "PRML2"}
+    dry = metrics["models"]["PRML2"]["test"]
+    assert dry["dead_reckoning_60s"]["n_windows"] == 2
+    assert metrics["models"]["PRML2"]["snow"]["dead_reckoning_60s"]["n_windows"] == 1
+    assert metrics["models"]["OSD-Baseline"]["test"]["z_rmse"]["v_y_mps"] is None  # a dash in Table 1
+    assert [r["guard"] for r in metrics["ablation"]["rows"]] == [False, False, True]
+    assert metrics["tuning"]["OSD-Baseline"]["q_scale"] > 0
+    for fig in metrics["figures"]:
+        assert (out / fig).stat().st_size > 1000
+    gt = sorted((out / "tum" / "groundtruth").glob("*.txt"))
+    est = sorted((out / "tum" / "PRML2").glob("*.txt"))
+    assert len(gt) == 3 and [p.name for p in est] == [p.name for p in gt]
+    assert "PRML2" in capsys.readouterr().out
+
+
+def test_z_rmse_ignores_missing_components(tiny):
+    data, _ = tiny
+    task = split_tasks(load_dataset(data), "test", WINDOW_S)[0]
+    res = run_window(ModelSpec("osd", "osd"), task)
+    z, n = z_rmse([res], [task])
+    assert z["v_y_mps"] is None and z["a_x_mps2"] is None and z["v_x_mps"] is not None
+    assert n == len(task.t_s)
