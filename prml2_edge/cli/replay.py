@@ -4,15 +4,58 @@ from __future__ import annotations
 
 import argparse
 
-from prml2_edge.errors import Prml2Error
-
 HELP = "Replay a recorded CAN log through a virtual bus into the runtime."
 NEEDS: tuple[tuple[str, str], ...] = ()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """No options yet: filled in by issue 6."""
+    from prml2_edge.runtime.cli_args import add_pipeline_arguments
+
+    parser.add_argument("log", metavar="LOG", help="CAN log: .log (candump), .asc, .blf, .trc, .csv (python-can)")
+    parser.add_argument("--realtime", action="store_true", help="keep the log's original timing")
+    parser.add_argument("--speed", type=float, default=1.0, help="playback speed factor with --realtime (default 1)")
+    parser.add_argument("--can-out", metavar="PATH",
+                        help="write PRML2_POSE/PRML2_DYNAMICS/PRML2_POSE_STD frames to this CAN log")
+    add_pipeline_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
-    raise Prml2Error("'prml2 replay' is not available in this version yet (issue 6)")
+    import can
+
+    from prml2_edge.progress import Progress
+    from prml2_edge.runtime.app import build_pipeline, config_from_args, summary_lines, write_summary_json
+    from prml2_edge.runtime.pipeline import run_source
+    from prml2_edge.runtime.sinks import CanSink
+    from prml2_edge.runtime.source import LogReplay, count_log_frames
+
+    cfg = config_from_args(args)
+    n_frames, t_first, t_last = count_log_frames(args.log)
+    extra = []
+    if args.can_out:
+        from pathlib import Path
+
+        Path(args.can_out).parent.mkdir(parents=True, exist_ok=True)
+        extra.append(CanSink(can.Logger(args.can_out)))
+    pipeline = build_pipeline(cfg, extra)
+    print(f"replaying {args.log}: {n_frames} frames, {t_last - t_first:.1f} s"
+          f"{' in real time' if args.realtime else ''}; {pipeline.model.describe()}")
+    try:
+        with LogReplay(args.log, realtime=args.realtime, speed=args.speed) as source, \
+                Progress(n_frames, desc="replay", unit="frames") as bar:
+            run_source(pipeline, source, progress=bar)
+            error = source.error
+    finally:
+        pipeline.close()
+    summary = pipeline.summary()
+    for line in summary_lines(summary):
+        print(line)
+    print("latency per stage:")
+    for line in pipeline.latency.report_lines():
+        print("  " + line)
+    if args.summary_json:
+        write_summary_json(args.summary_json, summary)
+    if error:
+        from prml2_edge.errors import DataError
+
+        raise DataError(error)
+    return 0

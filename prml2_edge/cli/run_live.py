@@ -4,15 +4,91 @@ from __future__ import annotations
 
 import argparse
 
-from prml2_edge.errors import Prml2Error
-
 HELP = "Run the localiser on a live CAN interface."
 NEEDS: tuple[tuple[str, str], ...] = ()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """No options yet: filled in by issue 6."""
+    from prml2_edge.runtime.cli_args import add_pipeline_arguments
+
+    g = parser.add_argument_group("CAN interface")
+    g.add_argument("--interface", help="python-can interface: socketcan (default), pcan, kvaser, vector, virtual, ...")
+    g.add_argument("--channel", help="channel, e.g. can0 (default), PCAN_USBBUS1")
+    g.add_argument("--bitrate", type=int, help="bit rate for interfaces that set it themselves (pcan, kvaser)")
+    g.add_argument("--fd", action="store_true", help="CAN FD")
+    g.add_argument("--can-out", action="store_true",
+                   help="send PRML2_POSE/PRML2_DYNAMICS/PRML2_POSE_STD back on the bus every 50 Hz step")
+    g.add_argument("--status-interval", type=float, help="seconds between status lines (default 5; 0: none)")
+    g.add_argument("--duration", type=float, help="stop after this many seconds (default: until SIGINT/SIGTERM)")
+    add_pipeline_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
-    raise Prml2Error("'prml2 run' is not available in this version yet (issue 6)")
+    import logging
+    import signal
+    import threading
+    import time
+
+    from prml2_edge.runtime.app import build_pipeline, config_from_args, summary_lines, write_summary_json
+    from prml2_edge.runtime.pipeline import run_source
+    from prml2_edge.runtime.sinks import CanSink
+    from prml2_edge.runtime.source import BusSource, open_bus
+    from prml2_edge.service.notify import SystemdNotifier
+
+    log = logging.getLogger("prml2.run")
+    cfg = config_from_args(args)
+    pipeline = build_pipeline(cfg)
+    bus = open_bus(cfg.can.interface, cfg.can.channel, bitrate=cfg.can.bitrate, fd=cfg.can.fd)
+    if args.can_out or cfg.sinks.can_out:
+        pipeline.sinks.append(CanSink(bus))
+    source = BusSource(bus)
+    notifier = SystemdNotifier()
+    stop = threading.Event()
+
+    def on_signal(signum, _frame) -> None:
+        stop.set()
+
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, on_signal)
+    t_start = time.monotonic()
+    interval = cfg.sinks.status_interval_s
+    next_status = t_start + interval if interval > 0 else float("inf")
+
+    def on_idle() -> None:
+        nonlocal next_status
+        notifier.maybe_ping()
+        now = time.monotonic()
+        if args.duration is not None and now - t_start >= args.duration:
+            stop.set()
+        if now >= next_status:
+            line = pipeline.status_line()
+            log.info(line)
+            notifier.status(line)
+            next_status = now + interval
+
+    print(f"listening on {cfg.can.interface} {cfg.can.channel}; {pipeline.model.describe()}; "
+          f"map {pipeline.signal_map.name}; Ctrl-C to stop", flush=True)
+    notifier.ready(f"listening on {cfg.can.channel}")
+    try:
+        run_source(pipeline, source, should_stop=stop.is_set, on_idle=on_idle)
+    finally:
+        notifier.stopping()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        pipeline.close()
+        source.close()
+        notifier.close()
+    summary = pipeline.summary()
+    summary["bus_errors"] = source.errors
+    for line in summary_lines(summary):
+        print(line)
+    if source.errors:
+        print(f"bus receive errors: {source.errors} (last: {source.last_error})")
+    print("latency per stage:")
+    for line in pipeline.latency.report_lines():
+        print("  " + line)
+    if args.summary_json:
+        write_summary_json(args.summary_json, summary)
+    return 0

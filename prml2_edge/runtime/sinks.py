@@ -154,7 +154,7 @@ class CanSink:
                              "COUNTER": self.counter}),
             )
             for msg, values in payloads:
-                frame = can.Message(timestamp=out.t_s, arbitration_id=msg.frame_id, is_extended_id=False,
+                frame = can.Message(timestamp=out.t_s, arbitration_id=msg.frame_id, is_extended_id=False, is_rx=False,
                                     data=self._encode(msg, values))
                 self._send(frame)
                 self.frames += 1

@@ -1,0 +1,134 @@
+"""Command-line plumbing shared by ``prml2 replay``, ``prml2 run`` and ``prml2 demo``.
+
+Options come from :class:`prml2_edge.config.RuntimeConfig` (``--config FILE``, see
+``deploy/runtime.toml``) with command-line flags overriding it; :func:`build_pipeline` turns
+the result into a :class:`~prml2_edge.runtime.pipeline.Pipeline` with its sinks.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+from prml2_edge.config import RuntimeConfig, load_config, verify_pinned_model, with_overrides
+from prml2_edge.errors import ConfigError
+from prml2_edge.runtime.initial_pose import InitialPose
+from prml2_edge.runtime.pipeline import Pipeline
+from prml2_edge.runtime.status import PoseStatus
+
+
+def config_from_args(args: argparse.Namespace) -> RuntimeConfig:
+    """``--config`` (or the defaults) with the command-line flags applied."""
+    cfg = load_config(args.config) if getattr(args, "config", None) else RuntimeConfig()
+    pose: dict = {}
+    if getattr(args, "initial_pose", None) and getattr(args, "initial_pose_file", None):
+        raise ConfigError("give either --initial-pose or --initial-pose-file, not both")
+    if getattr(args, "initial_pose", None):
+        ip = InitialPose.parse(args.initial_pose)
+        pose = {"source": "config", "x_m": ip.x_m, "y_m": ip.y_m, "heading_deg": ip.heading_deg}
+    elif getattr(args, "initial_pose_file", None):
+        pose = {"source": "file", "file": args.initial_pose_file}
+    providers = None
+    if getattr(args, "providers", None):
+        providers = tuple(p.strip() for p in args.providers.split(",") if p.strip())
+    can_section = {k: getattr(args, k, None) for k in ("interface", "channel", "bitrate")}
+    if getattr(args, "fd", False):
+        can_section["fd"] = True
+    return with_overrides(
+        cfg,
+        can=can_section,
+        signals={"map": args.map, "dbc": args.dbc, "mu": args.mu, "stale_periods": args.stale_periods},
+        model={"path": args.model, "threads": args.threads, "stride": args.stride, "providers": providers},
+        initial_pose=pose,
+        sinks={"jsonl": args.jsonl, "csv": args.csv, "tum": args.tum,
+               "status_interval_s": getattr(args, "status_interval", None)},
+    )
+
+
+def initial_pose_from_config(cfg: RuntimeConfig) -> InitialPose | None:
+    """The configured initial pose; None means "from the first GNSS fix"."""
+    ip = cfg.initial_pose
+    if ip.source == "config":
+        return InitialPose(ip.x_m, ip.y_m, ip.heading_deg, source="config")
+    if ip.source == "file":
+        return InitialPose.from_file(ip.file)  # type: ignore[arg-type]
+    return None
+
+
+def file_sinks(cfg: RuntimeConfig) -> list:
+    from prml2_edge.runtime.sinks import CsvSink, JsonlSink, TumSink
+
+    sinks: list = []
+    if cfg.sinks.jsonl:
+        sinks.append(JsonlSink(cfg.sinks.jsonl))
+    if cfg.sinks.csv:
+        sinks.append(CsvSink(cfg.sinks.csv))
+    if cfg.sinks.tum:
+        sinks.append(TumSink(cfg.sinks.tum))
+    return sinks
+
+
+def build_pipeline(cfg: RuntimeConfig, extra_sinks: list | None = None) -> Pipeline:
+    """Everything the config names, loaded and cross-checked (one-line errors on any mismatch)."""
+    model_path = cfg.model.path
+    if cfg.model.sha256 is not None:
+        from prml2_edge.runtime.inference import default_model_path
+
+        verify_pinned_model(model_path or default_model_path(), cfg.model.sha256)
+    initial_pose = initial_pose_from_config(cfg)
+    sinks = file_sinks(cfg) + list(extra_sinks or [])
+    try:
+        return Pipeline.build(map=cfg.signals.map, dbc=cfg.signals.dbc, model=model_path, threads=cfg.model.threads,
+                              providers=cfg.model.providers, stride=cfg.model.stride, mu=cfg.signals.mu,
+                              stale_periods=cfg.signals.stale_periods, initial_pose=initial_pose, sinks=sinks,
+                              trt_cache_dir=cfg.model.trt_cache_dir, trt_fp16=cfg.model.trt_fp16)
+    except BaseException:
+        for sink in sinks:
+            sink.close()
+        raise
+
+
+def _ms(v) -> str:
+    return "-" if v is None else f"{v:.2f}"
+
+
+def summary_lines(summary: dict) -> list[str]:
+    """The end-of-run summary for the terminal."""
+    fr = summary["frames"]
+    lines = [f"map {summary['map']} ({summary['dbc']}); {summary['model']}"]
+    rejected = ", ".join(f"{k} {v}" for k, v in fr["rejected_by_reason"].items()) or "none"
+    lines.append(f"frames: {fr['received']} received = {fr['used']} used + {fr['ignored']} ignored + "
+                 f"{fr['rejected']} rejected ({rejected}); balanced: {'yes' if fr['balanced'] else 'NO'}")
+    if fr["late_applied"] or fr["counter_gaps"]:
+        lines.append(f"late frames applied {fr['late_applied']}, counter gaps {fr['counter_gaps']}")
+    steps = ", ".join(f"{k} {v}" for k, v in summary["steps_by_status"].items()) or "none"
+    lines.append(f"50 Hz steps: {summary['rows']} ({steps}); model used on {summary['model_used_steps']}; "
+                 f"inferences {summary['inferences']} ({summary['inference_failures']} failed); "
+                 f"guard fired {100.0 * summary['guard']['fire_rate']:.2f} %; EKF resets {summary['ekf_resets']}")
+    rf = summary.get("realtime_factor")
+    lines.append(f"drive time {summary['data_s']:.1f} s in {summary['wall_s']:.1f} s wall"
+                 + (f" ({rf:.1f}x real time)" if rf else ""))
+    last = summary.get("last")
+    if last and last.get("x_m") is not None:
+        outage = last.get("outage_s")
+        lines.append(f"final pose: x {last['x_m']:.2f} m east, y {last['y_m']:.2f} m north, "
+                     f"psi {math.degrees(last['psi_rad']):.1f} deg ccw from east, +-{last['pos_std_m']:.2f} m, "
+                     f"{last['status']}" + (f", {outage:.1f} s since the last fix" if outage else ""))
+    elif last:
+        lines.append(f"final status: {last['status']} (no pose: {PoseStatus.INITIALISING.name})")
+    for name, s in summary.get("sinks", {}).items():
+        if s.get("errors"):
+            lines.append(f"WARNING {name}: {s['errors']} write errors ({s.get('last_error', '')})")
+    return lines
+
+
+def write_summary_json(path: str | Path, summary: dict) -> None:
+    def default(obj):
+        if hasattr(obj, "item"):
+            return obj.item()
+        return str(obj)
+
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(summary, indent=2, default=default) + "\n")

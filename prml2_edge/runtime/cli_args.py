@@ -1,0 +1,31 @@
+"""Command-line options shared by the runtime commands (argparse only: cheap to import)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options every runtime command shares (map, DBC, model, guard, initial pose, sinks)."""
+    g = parser.add_argument_group("vehicle and model")
+    g.add_argument("--config", metavar="TOML", help="runtime config file (deploy/runtime.toml); flags override it")
+    g.add_argument("--map", metavar="NAME|PATH",
+                   help="signal map: prml2_onboard (default), vw_mqb, hyundai_2015_ccan, or a map .toml")
+    g.add_argument("--dbc", metavar="PATH", help="DBC file (default: the one the map names)")
+    g.add_argument("--model", metavar="PATH", help="ONNX model (default: the shipped model)")
+    g.add_argument("--mu", type=float, help="road friction for the physics guard (default 1.0; <= 0.5 low-mu)")
+    g.add_argument("--threads", type=int, help="ONNX Runtime intra-op threads (default 1)")
+    g.add_argument("--stride", type=int, help="a new model window every N 50 Hz steps (default 1)")
+    g.add_argument("--providers", metavar="LIST",
+                   help="execution providers in order, comma separated (default tensorrt,cuda,cpu)")
+    g.add_argument("--stale-periods", type=float,
+                   help="a signal is invalid after this many of its periods without a frame (default 3)")
+    p = parser.add_argument_group("initial pose (default: first GNSS fix on the bus)")
+    p.add_argument("--initial-pose", metavar="X,Y,HEADING_DEG",
+                   help="east [m], north [m], heading clockwise from north [deg]")
+    p.add_argument("--initial-pose-file", metavar="PATH", help="JSON/TOML file with x_m, y_m, heading_deg")
+    s = parser.add_argument_group("outputs")
+    s.add_argument("--jsonl", metavar="PATH", help="write every 50 Hz step as JSON lines")
+    s.add_argument("--csv", metavar="PATH", help="write every 50 Hz step as CSV")
+    s.add_argument("--tum", metavar="PATH", help="write the trajectory in TUM format (timestamp x y z qx qy qz qw)")
+    s.add_argument("--summary-json", metavar="PATH", help="write the end-of-run summary as JSON")
