@@ -50,3 +50,26 @@ def test_bad_dbc_and_bad_toml_are_one_line_errors(tmp_path):
         load_map_and_dbc(shipped_map_path("prml2_onboard"), bad_dbc)
     with pytest.raises(ConfigError, match="not valid TOML"):
         load_signal_map(_write(tmp_path, "[map\n"))
+
+
+@pytest.mark.parametrize("name", ["vw_mqb", "hyundai_2015_ccan"])
+def test_production_maps_load_against_the_real_opendbc_files(shared_dir, name):
+    smap, db, dbc_path = load_map_and_dbc(shipped_map_path(name), shared_dir / "dbc" / "opendbc" / f"{name}.dbc")
+    assert smap.name == name and [s.name for s in smap.signals] == list(schema.SIGNAL_NAMES)
+    assert smap.gnss is None  # production buses carry no GNSS fix in the local frame
+    for spec in smap.signals:  # every rate is a production rate of that bus
+        assert spec.rate_hz in (50.0, 100.0)
+
+
+def test_vw_map_converts_g_and_uses_sign_bits():
+    smap = load_signal_map(shipped_map_path("vw_mqb"))
+    by = {s.name: s for s in smap.signals}
+    assert by["lat_accel_mps2"].scale == pytest.approx(schema.G_MPS2)
+    assert by["yaw_rate_radps"].sign == "ESP_VZ_Gierrate" and by["steering_wheel_angle_rad"].sign
+    assert by["yaw_rate_radps"].to_si(10.0, 1) == pytest.approx(-0.17453292519943295)
+    assert not smap.strict
+
+
+def test_unshipped_dbc_asks_for_dbc_option():
+    with pytest.raises(DbcError, match="pass --dbc PATH"):
+        load_map_and_dbc(shipped_map_path("vw_mqb"))

@@ -49,7 +49,9 @@ class LocalizerConfig:
 
     stride: int = 1  # a new window every `stride` 50 Hz steps
     mu: float = 1.0  # road friction for the physics guard (<= 0.5: low-mu limits)
-    max_invalid_fraction: float = 0.1  # window rows with an invalid signal above which outputs are not used
+    # Outputs of a window whose rows had an invalid signal in more than this fraction are not used:
+    # a dropout of d rows costs the model until at most fraction * L of them are left in the window.
+    max_invalid_fraction: float = 0.2
     gnss_pos_std_m: float = 0.5  # one-sigma GNSS position noise per axis
     gnss_heading_std_deg: float = 2.0  # one-sigma GNSS heading noise
     gnss_heading_min_speed_mps: float = 2.0  # below this speed a GNSS heading is not fused

@@ -140,7 +140,9 @@ class Canvas:
         n = np.minimum(n, 4 * (self.w + self.h))  # a segment far outside the canvas is not worth more
         seg = np.repeat(np.arange(x0.size), n)
         frac = (np.arange(seg.size) - np.repeat(np.cumsum(n) - n, n)) / np.repeat(n, n)
-        self.points(x0[seg] + frac * (x1 - x0)[seg], y0[seg] + frac * (y1 - y0)[seg], color, max(width // 2, 0))
+        px_all = np.concatenate([x0[seg] + frac * (x1 - x0)[seg], x1])  # segment samples, then the end points
+        py_all = np.concatenate([y0[seg] + frac * (y1 - y0)[seg], y1])
+        self.points(px_all, py_all, color, max(width // 2, 0))
 
     def rect(self, x0: int, y0: int, x1: int, y1: int, color, fill: bool = False) -> None:
         x0, x1 = sorted((x0, x1))

@@ -1,0 +1,157 @@
+"""prml2 replay / run / demo from the command line, and their one-line errors."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import threading
+import time
+import uuid
+
+import can
+import pytest
+from runtime_models import make_kinematic_model
+
+from prml2_edge.can.encode import encode_drive_to_log
+from prml2_edge.cli.main import main
+from prml2_edge.data.simulate import simulate_drive
+from prml2_edge.errors import ModelError
+from prml2_edge.viz.png import read_png
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cli")
+    drive = simulate_drive(0.15, 1.0, 3)  # 9 s
+    encode_drive_to_log(drive, root / "drive.log", gnss_seconds=2.0)
+    return root, make_kinematic_model(root / "kinematic.onnx"), drive
+
+
+def one_line_error(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    return err
+
+
+def test_replay_writes_every_sink_and_a_balanced_summary(files, capsys, tmp_path):
+    root, model, drive = files
+    rc = main(["replay", str(root / "drive.log"), "--model", str(model), "--jsonl", str(tmp_path / "p.jsonl"),
+               "--csv", str(tmp_path / "p.csv"), "--tum", str(tmp_path / "p.tum"), "--can-out",
+               str(tmp_path / "out.asc"), "--summary-json", str(tmp_path / "s.json")])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "balanced: yes" in out and "end_to_end" in out and "deadline 20 ms" in out and "25-32 ms" in out
+    summary = json.loads((tmp_path / "s.json").read_text())
+    assert summary["frames"]["balanced"] and summary["rows"] == len(drive)
+    assert len((tmp_path / "p.jsonl").read_text().splitlines()) == len(drive)
+    assert len(list(can.LogReader(str(tmp_path / "out.asc")))) == 3 * len(drive)
+
+
+def test_replay_errors_are_one_line(files, capsys, tmp_path, shared_dir):
+    root, model, _ = files
+    assert main(["replay", str(tmp_path / "missing.log"), "--model", str(model)]) == 1
+    assert "CAN log not found" in one_line_error(capsys)
+    (tmp_path / "x.txt").write_text("hello")
+    assert main(["replay", str(tmp_path / "x.txt"), "--model", str(model)]) == 1
+    assert "unknown CAN log format" in one_line_error(capsys)
+    assert main(["replay", str(root / "drive.log"), "--model", str(model), "--map", "vw_mqb"]) == 1
+    assert "--dbc" in one_line_error(capsys)
+    vw = shared_dir / "dbc" / "opendbc" / "vw_mqb.dbc"
+    assert main(["replay", str(root / "drive.log"), "--model", str(model), "--map", "vw_mqb", "--dbc", str(vw)]) == 1
+    assert "no GNSS fix message" in one_line_error(capsys)
+    assert main(["replay", str(root / "drive.log"), "--model", str(tmp_path / "nope.onnx")]) == 1
+    assert "model file not found" in one_line_error(capsys)
+    assert main(["replay", str(root / "drive.log"), "--map", "no_such_map", "--model", str(model)]) == 1
+    assert "unknown signal map" in one_line_error(capsys)
+
+
+def test_a_broken_log_delivers_what_came_before_and_then_fails(files, capsys, tmp_path):
+    root, model, _ = files
+    lines = (root / "drive.log").read_text().splitlines()
+    broken = tmp_path / "broken.log"
+    broken.write_text("\n".join(lines[:500] + ["(1.0) vcan0 this-is-not-a-frame"] + lines[500:]) + "\n")
+    assert main(["replay", str(broken), "--model", str(model)]) == 1
+    assert "cannot read CAN log after 500 frames" in one_line_error(capsys)
+
+
+def _send_frames(channel: str, frames: list[can.Message], stop: threading.Event) -> None:
+    with can.Bus(interface="virtual", channel=channel) as bus:
+        t0 = time.monotonic()
+        for msg in frames:
+            if stop.is_set():
+                return
+            delay = t0 + msg.timestamp - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            bus.send(can.Message(arbitration_id=msg.arbitration_id, is_extended_id=False, data=msg.data))
+
+
+def test_run_live_on_a_virtual_bus_stops_cleanly_on_sigterm(files, capsys, caplog, tmp_path):
+    caplog.set_level(logging.INFO)
+    root, model, drive = files
+    channel = f"prml2-live-{uuid.uuid4().hex}"
+    frames = list(can.LogReader(str(root / "drive.log")))
+    stop = threading.Event()
+    default = signal.getsignal(signal.SIGTERM)
+
+    def drive_the_bus() -> None:
+        while signal.getsignal(signal.SIGTERM) is default and not stop.is_set():  # wait for the handler
+            time.sleep(0.01)
+        _send_frames(channel, frames[: 450 * 3], stop)  # 3 s of traffic
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    feeder = threading.Thread(target=drive_the_bus, daemon=True)
+    feeder.start()
+    try:
+        rc = main(["run", "--interface", "virtual", "--channel", channel, "--model", str(model), "--initial-pose",
+                   "0,0,90", "--can-out", "--status-interval", "1", "--summary-json", str(tmp_path / "s.json"),
+                   "--duration", "30"])
+    finally:
+        stop.set()
+        feeder.join(5)
+    assert rc == 0
+    summary = json.loads((tmp_path / "s.json").read_text())
+    assert summary["wall_s"] < 25  # ended by SIGTERM, not by --duration
+    fr = summary["frames"]
+    assert fr["balanced"] and fr["used"] > 1000 and summary["rows"] > 100
+    assert signal.getsignal(signal.SIGTERM) is default  # handlers restored
+    assert "listening on virtual" in capsys.readouterr().out
+    assert "frames/s" in caplog.text and "e2e p50/p99" in caplog.text  # the periodic status line (logging)
+
+
+def test_demo_with_a_given_model_prints_report_and_writes_a_plot(files, capsys, tmp_path):
+    _, model, _ = files
+    rc = main(["demo", "--seconds", "20", "--gnss-seconds", "6", "--model", str(model), "--out", str(tmp_path),
+               "--summary-json", str(tmp_path / "s.json")])
+    assert rc == 0
+    out = capsys.readouterr().out
+    for text in ("pose track vs ground truth", "whole outage", "end_to_end", "deadline 20 ms", "25-32 ms"):
+        assert text in out
+    img = read_png(tmp_path / "trajectory.png")
+    assert img.shape == (700, 900, 3) and (img != 255).any()
+    metrics = json.loads((tmp_path / "s.json").read_text())["metrics"]
+    assert metrics["rmse_m_gnss"] < 0.3 and metrics["drift_pct"] < 5.0
+
+
+def test_demo_without_the_shipped_model_is_a_one_line_error(monkeypatch, capsys, tmp_path):
+    import prml2_edge.runtime.inference as inference
+
+    def missing(*parts):
+        raise ModelError("not here")
+
+    monkeypatch.setattr(inference, "resource_path", missing)
+    assert main(["demo", "--seconds", "20", "--out", str(tmp_path)]) == 1
+    assert "shipped default model" in one_line_error(capsys)
+
+
+def test_demo_runs_with_the_shipped_model(capsys, tmp_path):
+    from prml2_edge.runtime.inference import default_model_path
+
+    try:
+        default_model_path()
+    except ModelError:
+        pytest.skip("no shipped model in this checkout")
+    assert main(["demo", "--seconds", "15", "--gnss-seconds", "6", "--out", str(tmp_path), "--no-plot"]) == 0
+    assert "preset" in capsys.readouterr().out

@@ -1,0 +1,120 @@
+"""StreamingLocalizer: the one streaming path (window -> model -> guard -> EKF), on plain arrays."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from runtime_models import make_kinematic_model
+
+from prml2_edge import schema
+from prml2_edge.data.simulate import simulate_drive
+from prml2_edge.runtime.decode import GnssFix
+from prml2_edge.runtime.inference import OnnxModel
+from prml2_edge.runtime.initial_pose import InitialPose, initial_state, psi_rad_to_heading_deg
+from prml2_edge.runtime.localizer import LocalizerConfig, StreamingLocalizer
+from prml2_edge.runtime.status import PoseStatus
+from prml2_edge.schema import EkfState
+
+L = schema.WINDOW_LEN
+
+
+@pytest.fixture(scope="module")
+def model_path(tmp_path_factory):
+    return make_kinematic_model(tmp_path_factory.mktemp("m") / "kinematic.onnx")
+
+
+@pytest.fixture(scope="module")
+def drive():
+    return simulate_drive(0.6, 1.0, 11)  # 36 s
+
+
+def gt_state(drive, i: int) -> np.ndarray:
+    x0 = np.zeros(EkfState.DIM)
+    x0[:3] = drive.pose_gt[i]
+    x0[list(schema.Z_TO_EKF_INDEX)] = drive.z_gt[i]
+    return x0
+
+
+def test_dead_reckoning_from_the_true_state_stays_within_the_baseline_error_level(model_path, drive):
+    loc = StreamingLocalizer(OnnxModel(model_path))
+    start = L - 1  # the model is warm at the first step
+    traj = loc.run_arrays(drive.onboard, gt_state(drive, start), start_index=start)
+    assert np.isnan(traj.x[:start]).all()
+    np.testing.assert_allclose(traj.x[start], gt_state(drive, start))
+    assert traj.model_used[start + 1:].all()
+    err = np.hypot(*(traj.pose[start:, :2] - drive.pose_gt[start:, :2]).T)
+    dist = float(np.sum(np.hypot(*np.diff(drive.pose_gt[start:, :2], axis=0).T)))
+    # the closed-form model is an odometry baseline (paper OSD: 5.3 m RMSE over 60 s); here ~31 s
+    assert dist > 100.0
+    assert float(err[-1]) < 0.05 * dist and float(np.sqrt(np.mean(err ** 2))) < 8.0
+    assert traj.pos_std_m[-1] > 5 * traj.pos_std_m[start]  # no absolute fix: the uncertainty grows
+
+
+def test_step_by_step_equals_run_arrays(model_path, drive):
+    n = 400
+    pose = InitialPose(float(drive.pose_gt[0, 0]), float(drive.pose_gt[0, 1]),
+                       psi_rad_to_heading_deg(float(drive.pose_gt[0, 2])))
+    x0, p0 = initial_state(pose, drive.onboard[0])
+    ref = StreamingLocalizer(OnnxModel(model_path)).run_arrays(drive.onboard[:n], x0, p0)
+    loc = StreamingLocalizer(OnnxModel(model_path), initial_pose=pose)
+    valid = np.ones(schema.NUM_SIGNALS, dtype=bool)
+    outs = [loc.step(drive.onboard[i], valid, i * schema.DT_S) for i in range(n)]
+    np.testing.assert_array_equal(np.array([o.x for o in outs]), ref.x)
+    status = [o.status for o in outs]
+    assert status[1:L - 1] == [PoseStatus.PREDICT_ONLY] * (L - 2)  # window filling: predict only
+    assert all(s is PoseStatus.DEAD_RECKONING for s in status[L:])
+    assert [o.model_used for o in outs].index(True) == L - 1
+
+
+def test_stride_uses_older_windows_between_inferences(model_path, drive):
+    loc = StreamingLocalizer(OnnxModel(model_path), LocalizerConfig(stride=10))
+    traj = loc.run_arrays(drive.onboard[:600], gt_state(drive, L - 1), start_index=L - 1)
+    assert loc.n_inferences == 1 + (600 - L) // 10
+    assert traj.model_used[L:].all()
+
+
+def test_invalid_inputs_degrade_to_predict_only_and_recover(model_path, drive):
+    n = 760
+    valid = np.ones((n, schema.NUM_SIGNALS), dtype=bool)
+    valid[400:460, 2] = False  # yaw rate invalid for 1.2 s
+    loc = StreamingLocalizer(OnnxModel(model_path), LocalizerConfig(max_invalid_fraction=0.1))
+    traj = loc.run_arrays(drive.onboard[:n], gt_state(drive, L - 1), start_index=L - 1, valid=valid)
+    assert (traj.status[400:460] == PoseStatus.DEGRADED).all() and not traj.model_used[400:460].any()
+    # afterwards the window holds > 10 % invalid rows (60 of 250): predict only until at most 25 are left,
+    # i.e. until the window starts at row 435 (row 684)
+    assert not traj.model_used[460:684].any() and (traj.status[460:684] == PoseStatus.PREDICT_ONLY).all()
+    assert traj.model_used[684:].all()
+    assert np.isfinite(traj.x[L - 1:]).all()
+
+
+def test_broken_model_output_means_predict_only_never_an_exception(tmp_path, drive):
+    bad = OnnxModel(make_kinematic_model(tmp_path / "nan.onnx", bias=[0, 0, 0, 0, np.nan]))
+    loc = StreamingLocalizer(bad)
+    traj = loc.run_arrays(drive.onboard[:300], gt_state(drive, L - 1), start_index=L - 1)
+    assert not traj.model_used.any() and loc.n_inference_failures == 300 - L + 1
+    assert (traj.status[L:] == PoseStatus.PREDICT_ONLY).all() and np.isfinite(traj.x[L - 1:]).all()
+
+
+def test_gnss_initialises_aids_and_its_loss_is_flagged(model_path, drive):
+    loc = StreamingLocalizer(OnnxModel(model_path), LocalizerConfig(gnss_timeout_s=0.5))
+    valid = np.ones(schema.NUM_SIGNALS, dtype=bool)
+    outs = []
+    for i in range(400):
+        t = i * schema.DT_S
+        fix = None
+        if i % 5 == 0 and 3 <= i <= 300:  # 10 Hz fixes from row 3 to 6 s
+            x, y, psi = drive.pose_gt[i]
+            fix = GnssFix(t, float(x), float(y), psi_rad_to_heading_deg(float(psi)), True)
+        outs.append(loc.step(drive.onboard[i], valid, t, fix))
+    assert [o.status for o in outs[:5]] == [PoseStatus.INITIALISING] * 5
+    assert outs[5].status is PoseStatus.GNSS_AIDED and outs[5].gnss_fused
+    assert all(o.status is PoseStatus.GNSS_AIDED for o in outs[5:326])
+    assert not outs[325].gnss_outage and outs[326].gnss_outage and outs[-1].gnss_outage
+    assert outs[-1].status is PoseStatus.DEAD_RECKONING
+    assert outs[-1].outage_s == pytest.approx((399 - 300) * schema.DT_S)
+    err = np.hypot(*(outs[300].x[:2] - drive.pose_gt[300, :2]))
+    assert err < 0.5
+    rec = json.loads(json.dumps(outs[0].record()))  # initialising: no pose, valid JSON
+    assert rec["p_x_m"] is None and rec["status"] == "INITIALISING"
