@@ -190,3 +190,12 @@ def export_baseline(checkpoint: str | Path, out_path: str | Path, parity_windows
             mean_t, var_t = model(torch.as_tensor(np.asarray(parity_windows, dtype=np.float32)))
         diff = float(max(np.abs(mean_o - mean_t.numpy()).max(), np.abs(var_o - var_t.numpy()).max()))
     return {"path": str(path), "max_abs_diff": diff}
+
+
+def is_baseline_checkpoint(path: str | Path) -> bool:
+    """True when ``path`` is a checkpoint written by :func:`fit_baseline`."""
+    try:
+        ckpt = torch.load(str(path), map_location="cpu", weights_only=False)
+    except Exception:  # noqa: BLE001 - unreadable here: let the PRML2 loader report it
+        return False
+    return isinstance(ckpt, dict) and ckpt.get("format") == FORMAT
