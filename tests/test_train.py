@@ -177,3 +177,14 @@ def test_cli_train_on_a_folder_of_csv_drives(tmp_path, capsys):
     assert (out / "best.pt").is_file() and (out / "loss_curve.png").is_file()
     assert main(["train", "--data", str(tmp_path / "nope"), "--out", str(out), "--preset", "tiny"]) == 1
     assert "dataset folder not found" in capsys.readouterr().err
+
+
+def test_prml2_and_prml2_star_agree_until_the_switch(toy_data, tmp_path):
+    """One cosine over the whole run and the same seed: only the fine-tuning loss differs."""
+    star = fit(toy_data, tmp_path / "star", preset="tiny", model_cfg=PRESET.model,
+               train_cfg=replace(CFG, finetune=False), progress=False)
+    full = fit(toy_data, tmp_path / "full", preset="tiny", model_cfg=PRESET.model, train_cfg=CFG, progress=False)
+    assert star.history[0]["val_nll"] == full.history[0]["val_nll"]
+    assert star.history[0]["lr_end"] == full.history[0]["lr_end"]
+    assert star.history[1]["stage"] == "pretrain" and full.history[1]["stage"] == "finetune"
+    assert star.history[1]["val_nll"] != full.history[1]["val_nll"]

@@ -72,6 +72,7 @@ class TrainConfig:
     weight_decay: float = 0.0
     finetune: bool = True  # False: PRML2* (NLL pretraining for all epochs)
     pretrain_frac: float = 0.7
+    lr_schedule: str = "cosine"  # "cosine": one schedule over all epochs; "cosine_restart": one per stage
     beta: float = 8.0  # position-loss scale of Eq. total_loss_single
     mu: float = 1.0  # friction coefficient the physics guard uses in training (dry data)
     window_stride: int = 10  # samples between training windows
@@ -101,6 +102,8 @@ class TrainConfig:
             raise ConfigError(f"pretrain fraction must be in (0, 1], got {self.pretrain_frac}")
         if not (self.mu > 0):
             raise ConfigError(f"mu must be > 0, got {self.mu}")
+        if self.lr_schedule not in ("cosine", "cosine_restart"):
+            raise ConfigError(f"lr_schedule must be 'cosine' or 'cosine_restart', got {self.lr_schedule!r}")
 
 
 @dataclass(frozen=True)
