@@ -155,3 +155,28 @@ def test_demo_runs_with_the_shipped_model(capsys, tmp_path):
         pytest.skip("no shipped model in this checkout")
     assert main(["demo", "--seconds", "15", "--gnss-seconds", "6", "--out", str(tmp_path), "--no-plot"]) == 0
     assert "preset" in capsys.readouterr().out
+
+
+def test_deploy_config_with_flag_overrides(repo_root, files, tmp_path):
+    import argparse
+
+    from prml2_edge.runtime.app import build_pipeline, config_from_args
+    from prml2_edge.runtime.cli_args import add_pipeline_arguments
+
+    _, model, _ = files
+    parser = argparse.ArgumentParser()
+    add_pipeline_arguments(parser)
+    args = parser.parse_args(["--config", str(repo_root / "deploy" / "runtime.toml"), "--model", str(model),
+                              "--jsonl", str(tmp_path / "p.jsonl"), "--mu", "0.4", "--initial-pose", "1,2,180"])
+    cfg = config_from_args(args)
+    assert cfg.signals.mu == 0.4 and cfg.model.path == str(model) and cfg.initial_pose.source == "config"
+    assert cfg.initial_pose.heading_deg == 180.0 and cfg.can.channel == "can0"  # untouched file value
+    pipeline = build_pipeline(cfg)
+    assert pipeline.localizer.a_max_mps2 == 5.0  # low-mu guard
+    pipeline.close()
+    pinned = config_from_args(parser.parse_args(["--model", str(model)]))
+    from dataclasses import replace
+
+    pinned = replace(pinned, model=replace(pinned.model, sha256="0" * 64))
+    with pytest.raises(ModelError, match="does not match the pinned"):
+        build_pipeline(pinned)

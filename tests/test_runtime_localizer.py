@@ -118,3 +118,16 @@ def test_gnss_initialises_aids_and_its_loss_is_flagged(model_path, drive):
     assert err < 0.5
     rec = json.loads(json.dumps(outs[0].record()))  # initialising: no pose, valid JSON
     assert rec["p_x_m"] is None and rec["status"] == "INITIALISING"
+
+
+def test_physics_guard_bounds_what_the_filter_consumes(tmp_path, drive):
+    from runtime_models import kinematic_weights
+
+    w = kinematic_weights()
+    w[:, schema.Z.V_X] *= 4.0  # a model that overestimates speed 4x: up to ~80 m/s
+    loc = StreamingLocalizer(OnnxModel(make_kinematic_model(tmp_path / "fast.onnx", weights=w)))
+    traj = loc.run_arrays(drive.onboard, gt_state(drive, L - 1), start_index=L - 1)
+    fast = 4.0 * drive.onboard[L:, 5:9].mean(axis=1) > schema.V_MAX_MPS
+    assert fast.any() and traj.guard_fired[L:][fast].all() and not traj.guard_fired[L:][~fast].any()
+    assert np.nanmax(traj.x[:, EkfState.VEL.start]) < schema.V_MAX_MPS + 0.5
+    assert loc.guard_stats.n_predictions == len(drive) - L + 1 and loc.guard_stats.n_fired == fast.sum()
