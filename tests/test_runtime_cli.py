@@ -9,6 +9,7 @@ import signal
 import threading
 import time
 import uuid
+from pathlib import Path
 
 import can
 import pytest
@@ -76,8 +77,8 @@ def test_a_broken_log_delivers_what_came_before_and_then_fails(files, capsys, tm
     assert "cannot read CAN log after 500 frames" in one_line_error(capsys)
 
 
-def _send_frames(channel: str, frames: list[can.Message], stop: threading.Event) -> None:
-    with can.Bus(interface="virtual", channel=channel) as bus:
+def _send_frames(interface: str, channel: str, frames: list[can.Message], stop: threading.Event) -> None:
+    with can.Bus(interface=interface, channel=channel) as bus:
         t0 = time.monotonic()
         for msg in frames:
             if stop.is_set():
@@ -88,10 +89,13 @@ def _send_frames(channel: str, frames: list[can.Message], stop: threading.Event)
             bus.send(can.Message(arbitration_id=msg.arbitration_id, is_extended_id=False, data=msg.data))
 
 
-def test_run_live_on_a_virtual_bus_stops_cleanly_on_sigterm(files, capsys, caplog, tmp_path):
+@pytest.mark.parametrize("interface", ["virtual", "socketcan"])
+def test_run_live_stops_cleanly_on_sigterm(files, capsys, caplog, tmp_path, interface):
+    if interface == "socketcan" and not Path("/sys/class/net/vcan0").exists():
+        pytest.skip("no vcan0 here (sudo modprobe vcan; deploy/can-setup.sh vcan0)")
     caplog.set_level(logging.INFO)
     root, model, drive = files
-    channel = f"prml2-live-{uuid.uuid4().hex}"
+    channel = f"prml2-live-{uuid.uuid4().hex}" if interface == "virtual" else "vcan0"
     frames = list(can.LogReader(str(root / "drive.log")))
     stop = threading.Event()
     default = signal.getsignal(signal.SIGTERM)
@@ -99,13 +103,13 @@ def test_run_live_on_a_virtual_bus_stops_cleanly_on_sigterm(files, capsys, caplo
     def drive_the_bus() -> None:
         while signal.getsignal(signal.SIGTERM) is default and not stop.is_set():  # wait for the handler
             time.sleep(0.01)
-        _send_frames(channel, frames[: 450 * 3], stop)  # 3 s of traffic
+        _send_frames(interface, channel, frames[: 450 * 3], stop)  # 3 s of traffic
         os.kill(os.getpid(), signal.SIGTERM)
 
     feeder = threading.Thread(target=drive_the_bus, daemon=True)
     feeder.start()
     try:
-        rc = main(["run", "--interface", "virtual", "--channel", channel, "--model", str(model), "--initial-pose",
+        rc = main(["run", "--interface", interface, "--channel", channel, "--model", str(model), "--initial-pose",
                    "0,0,90", "--can-out", "--status-interval", "1", "--summary-json", str(tmp_path / "s.json"),
                    "--duration", "30"])
     finally:
@@ -117,7 +121,7 @@ def test_run_live_on_a_virtual_bus_stops_cleanly_on_sigterm(files, capsys, caplo
     fr = summary["frames"]
     assert fr["balanced"] and fr["used"] > 1000 and summary["rows"] > 100
     assert signal.getsignal(signal.SIGTERM) is default  # handlers restored
-    assert "listening on virtual" in capsys.readouterr().out
+    assert f"listening on {interface}" in capsys.readouterr().out
     assert "frames/s" in caplog.text and "e2e p50/p99" in caplog.text  # the periodic status line (logging)
 
 
