@@ -42,3 +42,15 @@ def test_runtime_install_has_no_torch_and_cli_works(edge_venv):
     code = "from prml2_edge.resources import project_dbc_path; print(project_dbc_path())"
     where = subprocess.run([str(py), "-c", code], capture_output=True, text=True, cwd=edge_venv)
     assert "_data" in where.stdout, where.stdout + where.stderr
+
+
+def test_demo_runs_without_torch_after_plain_install(edge_venv, tmp_path):
+    """Issue 6: `pip install .` then `prml2 demo` (the README's first command) prints the report."""
+    env = {"PATH": str(edge_venv / "bin") + ":/usr/bin:/bin", "PRML2_NO_PROGRESS": "1", "HOME": str(tmp_path)}
+    proc = subprocess.run([str(edge_venv / "bin" / "prml2"), "demo"], capture_output=True, text=True,
+                          cwd=tmp_path, env=env, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = proc.stdout
+    assert "balanced: yes" in out and "end_to_end" in out and "paper" in out
+    pngs = list(tmp_path.rglob("*.png"))
+    assert pngs and pngs[0].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
