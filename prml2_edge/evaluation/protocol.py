@@ -240,6 +240,9 @@ def run_all(specs: Sequence[ModelSpec], tasks: Sequence[WindowTask], stride: int
         return out
     import multiprocessing as mp
 
+    import prml2_edge.runtime.inference
+    import prml2_edge.runtime.localizer  # noqa: F401 - imported before the fork: every worker runs the same code
+
     ctx = mp.get_context("fork" if os.name == "posix" else "spawn")
     with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
         for res in pool.map(_run_pair, pairs, chunksize=1):
