@@ -22,14 +22,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import can
 
+    from prml2_edge.errors import DataError
     from prml2_edge.progress import Progress
     from prml2_edge.runtime.app import build_pipeline, config_from_args, summary_lines, write_summary_json
     from prml2_edge.runtime.pipeline import run_source
     from prml2_edge.runtime.sinks import CanSink
-    from prml2_edge.runtime.source import LogReplay, count_log_frames
+    from prml2_edge.runtime.source import LogReplay, scan_log
 
     cfg = config_from_args(args)
-    n_frames, t_first, t_last = count_log_frames(args.log)
+    # A broken or cut-off log is still replayed up to the problem: every pose it yields is written,
+    # then the problem is reported (one line, non-zero exit).
+    n_frames, t_first, t_last, problem = scan_log(args.log)
+    if n_frames == 0:
+        raise DataError(problem or f"{args.log}: CAN log holds no frames")
     extra = []
     if args.can_out:
         from pathlib import Path
@@ -38,7 +43,8 @@ def run(args: argparse.Namespace) -> int:
         extra.append(CanSink(can.Logger(args.can_out)))
     pipeline = build_pipeline(cfg, extra)
     print(f"replaying {args.log}: {n_frames} frames, {t_last - t_first:.1f} s"
-          f"{' in real time' if args.realtime else ''}; {pipeline.model.describe()}")
+          f"{' in real time' if args.realtime else ''}; {pipeline.model.describe()}"
+          + (" (the log is damaged: replaying the frames before the damage)" if problem else ""))
     try:
         with LogReplay(args.log, realtime=args.realtime, speed=args.speed) as source, \
                 Progress(n_frames, desc="replay", unit="frames") as bar:
@@ -54,8 +60,7 @@ def run(args: argparse.Namespace) -> int:
         print("  " + line)
     if args.summary_json:
         write_summary_json(args.summary_json, summary)
+    error = error or problem
     if error:
-        from prml2_edge.errors import DataError
-
         raise DataError(error)
     return 0

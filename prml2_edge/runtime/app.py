@@ -103,6 +103,14 @@ def summary_lines(summary: dict) -> list[str]:
                  f"{fr['rejected']} rejected ({rejected}); balanced: {'yes' if fr['balanced'] else 'NO'}")
     if fr["late_applied"] or fr["counter_gaps"]:
         lines.append(f"late frames applied {fr['late_applied']}, counter gaps {fr['counter_gaps']}")
+    faults = [f"{n} {fr[k]}" for k, n in (("error_frames", "error frames"), ("remote_frames", "remote frames"),
+                                          ("clock_jumps", "clock jumps back")) if fr.get(k)]
+    if summary.get("bus_silent_rows"):
+        faults.append(f"bus silent {summary['bus_silent_rows'] / 50.0:.2f} s")
+    frozen = (summary.get("signal_faults") or {}).get("frozen_episodes") or {}
+    faults += [f"{name} frozen {n}x" for name, n in frozen.items()]
+    if faults:
+        lines.append("faults: " + ", ".join(faults))
     steps = ", ".join(f"{k} {v}" for k, v in summary["steps_by_status"].items()) or "none"
     lines.append(f"50 Hz steps: {summary['rows']} ({steps}); model used on {summary['model_used_steps']}; "
                  f"inferences {summary['inferences']} ({summary['inference_failures']} failed); "

@@ -15,9 +15,19 @@ A frame older than the last emitted row ("late") still updates the hold value wh
 newer than what is held (counted in ``stats.late_applied``); it cannot change rows already
 emitted. A frame none of whose values could be applied is ``REJECTED_LATE``.
 
-Gaps: bus silence up to ``max_gap_s`` is filled with held (stale, hence invalid) rows; a
-longer gap, or a clock that jumps back by more than ``max_gap_s``, re-anchors the grid at
-the new frame and flags the next row ``discontinuity`` (the localiser restarts its window).
+Gaps: bus silence up to ``max_gap_s`` is filled with held (stale, hence invalid) rows, flagged
+``bus_silent`` once no frame at all (any ID) has arrived for more than ``bus_silent_s``
+(opendbc's separate bus timeout); a longer gap re-anchors the grid at the new frame and flags
+the next row ``discontinuity`` (the localiser restarts its window). A clock that jumps back by
+more than ``max_backstep_s`` (a logger or gateway clock reset, not jitter) re-bases the grid
+and every held timestamp by the jump, so rows and ages continue without a loss
+(``stats.clock_jumps``).
+
+Stuck sensors (:class:`StuckCheck`): a signal whose value has not changed for ``hold_s``
+while the car moves (speedometer >= ``min_speed_mps``) and a witness signal moved by more
+than its span is frozen; it stays invalid until its value changes (``stats.signal_frozen``
+counts the episodes). The default check is the yaw rate against the steering wheel angle and
+the lateral acceleration: a turning car whose yaw rate does not move has a stuck gyro.
 """
 
 from __future__ import annotations
@@ -31,6 +41,29 @@ from prml2_edge import schema
 from prml2_edge.runtime.decode import DecodedFrame, GnssFix
 from prml2_edge.runtime.stats import FrameStats
 from prml2_edge.runtime.status import FrameStatus
+
+
+@dataclass(frozen=True)
+class StuckCheck:
+    """A signal frozen while witnesses say the car's state changed (indices into ``schema.SIGNALS``).
+
+    ``index`` is frozen when its value has been unchanged for ``hold_s`` [s], the speedometer
+    reads at least ``min_speed_mps`` [m/s] and, since that value arrived, a witness
+    ``witness[j]`` spanned at least ``span[j]`` [its SI unit].
+    """
+
+    index: int
+    hold_s: float
+    witness: tuple[int, ...]
+    span: tuple[float, ...]
+    min_speed_mps: float = 5.0
+
+
+# Yaw rate held for 1 s while the steering wheel moved by 20 deg or the lateral acceleration by
+# 2 m/s^2 at >= 5 m/s: each implies a yaw-rate change of several 1.28 deg/s sensor steps.
+# Simulated drives (seed 3, 5, 11; up to 50 s without a yaw-rate step) stay below 0.16 rad and
+# 0.45 m/s^2 while the yaw rate holds, so a healthy sensor does not trip it.
+YAW_RATE_STUCK = StuckCheck(index=2, hold_s=1.0, witness=(1, 3), span=(0.35, 2.0))
 
 
 @dataclass
@@ -52,6 +85,7 @@ class AssembledRow:
     gnss: GnssFix | None = None
     discontinuity: bool = False
     trigger_ns: int = 0
+    bus_silent: bool = False  # no frame at all for more than bus_silent_s before this row
 
     @property
     def all_valid(self) -> bool:
@@ -74,10 +108,18 @@ class Assembler:
         Longest bus silence filled with rows; longer re-anchors the grid.
     eps_s:
         Timestamp tolerance [s] when assigning a frame to a row.
+    bus_silent_s:
+        Rows after more than this long without any frame are flagged ``bus_silent`` [s]
+        (default 3 grid periods).
+    max_backstep_s:
+        A frame older than the newest frame by more than this is a clock jump, not jitter [s].
+    stuck_checks:
+        Stuck-sensor checks (default: :data:`YAW_RATE_STUCK`; ``()`` turns them off).
     """
 
     def __init__(self, rate_hz, stale_periods: float = 3.0, dt_s: float = schema.DT_S, max_gap_s: float = 5.0,
-                 eps_s: float = 1e-4, stats: FrameStats | None = None) -> None:
+                 eps_s: float = 1e-4, stats: FrameStats | None = None, bus_silent_s: float = 3 * schema.DT_S,
+                 max_backstep_s: float = 0.25, stuck_checks: tuple[StuckCheck, ...] = (YAW_RATE_STUCK,)) -> None:
         rate = np.asarray(rate_hz, dtype=np.float64)
         if rate.shape != (schema.NUM_SIGNALS,) or not np.all(rate > 0):
             raise ValueError(f"rate_hz must be ({schema.NUM_SIGNALS},) positive, got {rate!r}")
@@ -88,6 +130,14 @@ class Assembler:
         self.max_gap_s = float(max_gap_s)
         self.eps_s = float(eps_s)
         self.stats = stats if stats is not None else FrameStats()
+        self.bus_silent_s = float(bus_silent_s)
+        self.max_backstep_s = float(max_backstep_s)
+        self.stuck_checks = tuple(stuck_checks)
+        self._stuck_since = {c.index: -math.inf for c in self.stuck_checks}  # time the held value arrived [s]
+        self._stuck_lo = {c.index: np.full(len(c.witness), math.inf) for c in self.stuck_checks}
+        self._stuck_hi = {c.index: np.full(len(c.witness), -math.inf) for c in self.stuck_checks}
+        self._frozen = np.zeros(schema.NUM_SIGNALS, dtype=bool)
+        self.last_frame_t_s = -math.inf  # newest frame of any kind [s]
         self.values = np.zeros(schema.NUM_SIGNALS)
         self.last_t_s = np.full(schema.NUM_SIGNALS, -math.inf)
         self.quality_ok = np.zeros(schema.NUM_SIGNALS, dtype=bool)
@@ -116,8 +166,12 @@ class Assembler:
         t_k = self._t(k)
         age = t_k - self.last_t_s
         valid = self.quality_ok & (age <= self.stale_after_s + self.eps_s)
+        if self.stuck_checks:
+            self._check_stuck(t_k)
+            valid &= ~self._frozen
+        silent = t_k - self.last_frame_t_s > self.bus_silent_s + self.eps_s
         row = AssembledRow(k, t_k, self.values.copy(), valid, age, self._pending_gnss, self._discontinuity,
-                           trigger_ns)
+                           trigger_ns, silent)
         self._pending_gnss = None
         self._discontinuity = False
         self._k_next += 1
@@ -137,13 +191,17 @@ class Assembler:
             return (FrameStatus.REJECTED_DECODE if frame.status is FrameStatus.USED else frame.status), rows
         if self._t0 is None:
             self._t0 = t
+            for index in self._stuck_since:
+                self._stuck_since[index] = t
         else:
-            last_emitted = self._t(self._k_next - 1)
-            if t - self._t(self._k_next) > self.max_gap_s or t < last_emitted - self.max_gap_s:
+            if t < self.last_frame_t_s - self.max_backstep_s:
+                self._rebase(t - self.last_frame_t_s)
+            if t - self._t(self._k_next) > self.max_gap_s:
                 self._reanchor(t)
             else:
                 while t > self._t(self._k_next) + self.eps_s:
                     rows.append(self._emit(recv_ns))
+        self.last_frame_t_s = max(self.last_frame_t_s, t)
         status = frame.status
         if status is not FrameStatus.USED and status is not FrameStatus.REJECTED_INVALID:
             return status, rows
@@ -156,6 +214,8 @@ class Assembler:
             self.last_t_s[i] = t
             self.quality_ok[i] = ok
             if ok:
+                if self.stuck_checks:
+                    self._track_stuck(i, value, t)
                 self.values[i] = value
                 self.stats.signal_updates[i] += 1
             applied += 1
@@ -175,6 +235,49 @@ class Assembler:
         self._discontinuity = True
         self.resyncs += 1
         self.last_t_s[:] = -math.inf  # everything held is stale until its signal arrives again
+        self.last_frame_t_s = t
+        for index in self._stuck_since:
+            self._stuck_since[index] = t
+
+    def _rebase(self, shift_s: float) -> None:
+        """The clock jumped by ``shift_s`` [s] (< 0): move the grid and every held time with it."""
+        self._t0 += shift_s  # type: ignore[operator]
+        self.last_t_s += shift_s
+        self.last_frame_t_s += shift_s
+        for index in self._stuck_since:
+            self._stuck_since[index] += shift_s
+        if self._pending_gnss is not None:
+            self._pending_gnss = None  # its time belongs to the old clock
+        self.stats.clock_jumps += 1
+
+    def _track_stuck(self, i: int, value: float, t: float) -> None:
+        """Before ``values[i]`` takes ``value``: restart the hold of a checked signal, widen witness spans."""
+        if i in self._stuck_since and value != self.values[i]:
+            self._stuck_since[i] = t
+            self._stuck_lo[i][:] = math.inf
+            self._stuck_hi[i][:] = -math.inf
+            self._frozen[i] = False
+        for check in self.stuck_checks:
+            for j, w in enumerate(check.witness):
+                if w == i:
+                    self._stuck_lo[check.index][j] = min(self._stuck_lo[check.index][j], value)
+                    self._stuck_hi[check.index][j] = max(self._stuck_hi[check.index][j], value)
+
+    def _check_stuck(self, t_k: float) -> None:
+        for c in self.stuck_checks:
+            if self._frozen[c.index]:
+                continue
+            moving = self.values[0] >= c.min_speed_mps and np.isfinite(self.last_t_s[0])
+            spans = self._stuck_hi[c.index] - self._stuck_lo[c.index]
+            if moving and t_k - self._stuck_since[c.index] >= c.hold_s - self.eps_s and \
+                    bool(np.any(spans >= np.asarray(c.span))):
+                self._frozen[c.index] = True
+                self.stats.signal_frozen[c.index] += 1
+
+    @property
+    def frozen(self) -> np.ndarray:
+        """(9,) bool: signals a :class:`StuckCheck` currently holds frozen."""
+        return self._frozen.copy()
 
     def flush(self, recv_ns: int = 0) -> list[AssembledRow]:
         """At the end of a stream: emit the row that holds the last frame (if not yet emitted)."""

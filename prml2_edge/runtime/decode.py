@@ -154,8 +154,14 @@ class FrameDecoder:
     def step(self, msg: can.Message) -> DecodedFrame:
         """Decode one frame; never raises. ``msg.timestamp`` [s] becomes ``t_s``."""
         t_s = float(msg.timestamp)
+        if msg.is_error_frame:
+            self.stats.error_frames += 1
+            return DecodedFrame(FrameStatus.IGNORED, t_s)
+        if msg.is_remote_frame:
+            self.stats.remote_frames += 1
+            return DecodedFrame(FrameStatus.IGNORED, t_s)
         plan = self.plans.get(msg.arbitration_id)
-        if plan is None or msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id != plan.is_extended:
+        if plan is None or msg.is_extended_id != plan.is_extended:
             return DecodedFrame(FrameStatus.IGNORED, t_s)
         data = msg.data
         if len(data) != plan.length:

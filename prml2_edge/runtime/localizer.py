@@ -57,6 +57,13 @@ class LocalizerConfig:
     gnss_heading_min_speed_mps: float = 2.0  # below this speed a GNSS heading is not fused
     gnss_timeout_s: float = 0.5  # no fix for longer: GNSS outage (dead reckoning)
     fuse_gnss: bool = True
+    # Innovation gate: a fix whose position is further from the prediction than this squared
+    # Mahalanobis distance (2 dof; 16 ~ 4 sigma, p ~ 3e-4) is not fused, nor a heading beyond the same
+    # bound (1 dof). CAN has no authentication and GNSS_FIX no checksum: one stray frame must not
+    # teleport the pose. After this many fixes rejected in a row (2 s at 10 Hz) the next one is fused
+    # anyway, so a filter that really is off is pulled back.
+    gnss_gate_chi2: float = 16.0
+    gnss_gate_max_rejects: int = 20
 
     def __post_init__(self) -> None:
         if self.stride < 1:
@@ -94,6 +101,7 @@ class StepOutput:
     valid: np.ndarray
     z: np.ndarray | None = None  # (5,) guarded model output used at this step
     z_var: np.ndarray | None = None
+    bus_silent: bool = False  # no CAN frame at all for more than the assembler's bus_silent_s
 
     def record(self) -> dict:
         """A flat, JSON-ready dict (non-finite numbers become None)."""
@@ -112,6 +120,7 @@ class StepOutput:
         rec["gnss_outage"] = self.gnss_outage
         rec["outage_s"] = num(self.outage_s)
         rec["degraded"] = self.degraded
+        rec["bus_silent"] = self.bus_silent
         rec["ekf_status"] = None if self.ekf_status is None else self.ekf_status.name
         rec["valid"] = {n: bool(v) for n, v in zip(schema.SIGNAL_NAMES, self.valid, strict=True)}
         return rec
@@ -190,6 +199,8 @@ class StreamingLocalizer:
         self._output_ok = False
         self._last_abs_t: float | None = None  # last GNSS fix or the start
         self._last_fix_t: float | None = None
+        self._gnss_rejects_in_row = 0
+        self.n_gnss_rejected = 0  # fixes refused by the innovation gate
         self.n_inferences = 0
         self.n_model_used = 0
         self.n_inference_failures = 0
@@ -246,8 +257,17 @@ class StreamingLocalizer:
         return inferred, None, None, False
 
     def step(self, values: np.ndarray, valid: np.ndarray, t_s: float, gnss: GnssFix | None = None,
-             discontinuity: bool = False) -> StepOutput:
-        """Consume one 50 Hz row: ``values`` (9,) SI canonical order, ``valid`` (9,) bool, at ``t_s`` [s]."""
+             discontinuity: bool = False, bus_silent: bool = False) -> StepOutput:
+        """Consume one 50 Hz row: ``values`` (9,) SI canonical order, ``valid`` (9,) bool, at ``t_s`` [s].
+
+        ``bus_silent`` (the assembler's flag) is passed through to the output.
+        """
+        out = self._step(values, valid, t_s, gnss, discontinuity)
+        out.bus_silent = bus_silent
+        return out
+
+    def _step(self, values: np.ndarray, valid: np.ndarray, t_s: float, gnss: GnssFix | None,
+              discontinuity: bool) -> StepOutput:
         self.k += 1
         cfg = self.config
         all_valid = bool(np.all(valid))
@@ -293,11 +313,39 @@ class StreamingLocalizer:
             yaw_var = math.radians(cfg.gnss_heading_std_deg) ** 2
         else:
             psi = None
+        if not self._gate(pos, psi, yaw_var):
+            return False
+        if psi is not None and yaw_var is not None:
+            p = self.ekf.P  # type: ignore[union-attr]
+            d_psi = float(wrap_angle(psi - x[EkfState.YAW.start]))
+            if d_psi * d_psi > cfg.gnss_gate_chi2 * (p[EkfState.YAW.start, EkfState.YAW.start] + yaw_var):
+                psi = yaw_var = None  # position fine, heading implausible: fuse the position only
         status = self.ekf.fuse_pose(pos, cfg.gnss_pos_std_m ** 2, psi, yaw_var)  # type: ignore[union-attr]
         if status is StepStatus.SUCCESS:
             self._last_fix_t = t_s
             self._last_abs_t = t_s
             return True
+        return False
+
+    def _gate(self, pos: np.ndarray, psi: float | None, yaw_var: float | None) -> bool:
+        """Innovation gate of a GNSS position (2,) [m]; False (and counted) when it is refused."""
+        cfg = self.config
+        p = self.ekf.P  # type: ignore[union-attr]
+        d = pos - self.ekf.x[EkfState.POS]  # type: ignore[union-attr]
+        s = p[EkfState.POS, EkfState.POS] + np.eye(2) * cfg.gnss_pos_std_m ** 2
+        with np.errstate(all="ignore"):
+            try:
+                m2 = float(d @ np.linalg.solve(s, d))
+            except np.linalg.LinAlgError:
+                m2 = math.inf
+        if math.isfinite(m2) and m2 <= cfg.gnss_gate_chi2:
+            self._gnss_rejects_in_row = 0
+            return True
+        self._gnss_rejects_in_row += 1
+        if self._gnss_rejects_in_row > cfg.gnss_gate_max_rejects and math.isfinite(m2):
+            self._gnss_rejects_in_row = 0
+            return True
+        self.n_gnss_rejected += 1
         return False
 
     def _output(self, t_s: float, ekf_status: StepStatus | None, inferred: bool, model_used: bool,

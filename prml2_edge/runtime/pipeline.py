@@ -110,6 +110,7 @@ class Pipeline:
         self.dbc_path = dbc_path
         self.last: StepOutput | None = None
         self.rows = 0
+        self.bus_silent_rows = 0  # 50 Hz rows flagged bus_silent (no frame for > bus_silent_s)
         self.first_t_s: float | None = None
         self._t_wall0 = time.monotonic()
         self._interval = _Window(self._t_wall0)
@@ -169,7 +170,9 @@ class Pipeline:
     def _row(self, row: AssembledRow) -> StepOutput:
         if self.first_t_s is None:
             self.first_t_s = row.t_s
-        out = self.localizer.step(row.values, row.valid, row.t_s, row.gnss, row.discontinuity)
+        out = self.localizer.step(row.values, row.valid, row.t_s, row.gnss, row.discontinuity, row.bus_silent)
+        if out.bus_silent:
+            self.bus_silent_rows += 1
         t_sinks = time.perf_counter_ns()
         for sink in self.sinks:
             sink.step(out)
@@ -236,8 +239,12 @@ class Pipeline:
             "map": self.signal_map.name, "dbc": str(self.dbc_path) if self.dbc_path else self.signal_map.dbc,
             "model": getattr(model, "describe", lambda: type(model).__name__)(),
             "frames": self.stats.as_dict(),
-            "rows": self.rows, "grid_resyncs": self.assembler.resyncs,
+            "rows": self.rows, "grid_resyncs": self.assembler.resyncs, "bus_silent_rows": self.bus_silent_rows,
+            "signal_faults": {"frozen_now": [schema.SIGNAL_NAMES[i] for i in np.flatnonzero(self.assembler.frozen)],
+                              "frozen_episodes": {n: c for n, c in zip(schema.SIGNAL_NAMES, self.stats.signal_frozen,
+                                                                        strict=True) if c}},
             "steps_by_status": statuses,
+            "gnss_rejected": loc.n_gnss_rejected,
             "inferences": loc.n_inferences, "inference_failures": loc.n_inference_failures,
             "model_used_steps": loc.n_model_used,
             "guard": {"predictions": loc.guard_stats.n_predictions, "fired": loc.guard_stats.n_fired,

@@ -81,11 +81,55 @@ def check_log(path: str | Path) -> Path:
     return path
 
 
-def count_log_frames(path: str | Path) -> tuple[int, float, float]:
-    """Read a log once: ``(frames, first_timestamp_s, last_timestamp_s)``; a malformed log is a :class:`DataError`."""
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0][:200] if text else type(exc).__name__
+
+
+def truncation_problem(path: str | Path) -> str | None:
+    """Why the log looks cut off, or None: python-can silently stops at the end of a cut-off
+    ``.asc``, ``.blf`` or ``.trc``, so look at the end of the file itself.
+
+    Text formats (``.log``, ``.asc``, ``.trc``, ``.csv``) must end with a newline (``.asc``
+    with ``End TriggerBlock``); a ``.blf`` must be as long as its header says. Compressed
+    (``.gz``) logs are checked by gzip itself.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    try:
+        size = path.stat().st_size
+        if suffix == ".blf":
+            from can.io.blf import BLFReader
+
+            reader = BLFReader(str(path))
+            try:
+                want = int(reader.file_size)
+            finally:
+                reader.stop()
+            return None if size >= want else f"file is {size} bytes, its header says {want}: truncated"
+        if suffix in (".log", ".asc", ".trc", ".csv"):
+            with open(path, "rb") as f:
+                f.seek(max(size - 64, 0))
+                tail = f.read()
+            if size and not tail.endswith(b"\n"):
+                return "the last line is incomplete: truncated"
+            if suffix == ".asc" and b"End TriggerBlock" not in tail:
+                return "no 'End TriggerBlock' at the end: truncated"
+    except Exception as exc:  # the reader will report a header it cannot read
+        return f"cannot check the end of the file ({_first_line(exc)})"
+    return None
+
+
+def scan_log(path: str | Path) -> tuple[int, float, float, str | None]:
+    """Read a log once: ``(frames, first_timestamp_s, last_timestamp_s, problem)``.
+
+    ``problem`` is None for a complete, readable log, else one line naming the file and what
+    is wrong (the frames before the problem are counted). Never raises on a bad file.
+    """
     path = check_log(path)
     n = 0
     first = last = 0.0
+    problem = None
     try:
         with can.LogReader(str(path)) as reader:
             for msg in reader:
@@ -94,10 +138,21 @@ def count_log_frames(path: str | Path) -> tuple[int, float, float]:
                 last = msg.timestamp
                 n += 1
     except Exception as exc:
-        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise DataError(f"{path}: cannot read CAN log after {n} frames ({first_line})") from exc
-    if n == 0:
-        raise DataError(f"{path}: CAN log holds no frames")
+        problem = f"{path}: cannot read CAN log after {n} frames ({_first_line(exc)})"
+    if problem is None:
+        cut = truncation_problem(path)
+        if cut is not None:
+            problem = f"{path}: CAN log cut short after {n} frames ({cut})"
+    if problem is None and n == 0:
+        problem = f"{path}: CAN log holds no frames"
+    return n, first, last, problem
+
+
+def count_log_frames(path: str | Path) -> tuple[int, float, float]:
+    """Read a log once: ``(frames, first_timestamp_s, last_timestamp_s)``; a malformed log is a :class:`DataError`."""
+    n, first, last, problem = scan_log(path)
+    if problem is not None:
+        raise DataError(problem)
     return n, first, last
 
 
@@ -171,8 +226,7 @@ class LogReplay:
                     self._tx.send(msg)  # type: ignore[union-attr]
                     self.sent += 1
         except Exception as exc:  # a malformed log: deliver what came before, report it at the end
-            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            self.error = f"{self.path}: cannot read CAN log after {self.sent} frames ({first})"
+            self.error = f"{self.path}: cannot read CAN log after {self.sent} frames ({_first_line(exc)})"
         finally:
             self._done.set()
 

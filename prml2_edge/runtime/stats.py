@@ -28,6 +28,10 @@ class FrameStats:
     signal_nonfinite: list[int] = field(default_factory=_zeros)
     signal_invalid_flag: list[int] = field(default_factory=_zeros)  # quality bit said invalid
     signal_late: list[int] = field(default_factory=_zeros)  # older than the held value: dropped
+    signal_frozen: list[int] = field(default_factory=_zeros)  # stuck-sensor episodes (assembler StuckCheck)
+    error_frames: int = 0  # CAN error frames received (counted as ignored)
+    remote_frames: int = 0  # remote frames received (counted as ignored)
+    clock_jumps: int = 0  # frame clock jumped backwards: the grid was re-based
     late_applied: int = 0  # frames older than the current 50 Hz row, applied to the hold value
     counter_gaps: int = 0  # counter jumped forward by more than one (frames lost upstream)
     gnss_fixes: int = 0
@@ -65,12 +69,13 @@ class FrameStats:
             per_signal[name] = {
                 "updates": self.signal_updates[i], "out_of_range": self.signal_out_of_range[i],
                 "nonfinite": self.signal_nonfinite[i], "invalid_flag": self.signal_invalid_flag[i],
-                "late": self.signal_late[i],
+                "late": self.signal_late[i], "frozen": self.signal_frozen[i],
             }
         return {
             "received": self.received, "used": self.used, "ignored": self.ignored, "rejected": self.rejected,
             "rejected_by_reason": self.rejected_by_reason(), "balanced": self.balanced(),
             "late_applied": self.late_applied, "counter_gaps": self.counter_gaps,
+            "error_frames": self.error_frames, "remote_frames": self.remote_frames, "clock_jumps": self.clock_jumps,
             "gnss_fixes": self.gnss_fixes, "gnss_invalid": self.gnss_invalid,
             "used_by_message": dict(self.by_message), "signals": per_signal,
         }
