@@ -50,7 +50,8 @@ def _machine_line(m: dict) -> str:
 
 
 def latency_markdown(doc: dict) -> list[str]:
-    out = [f"### Latency per 50 Hz step ({doc['started']})", "",
+    quick = " -- QUICK development run (short drives), not the full benchmark" if doc.get("quick") else ""
+    out = [f"### Latency per 50 Hz step ({doc['started']}){quick}", "",
            f"Machine: {_machine_line(doc['machine'])}. Load average at start {doc['machine']['load_average']}, "
            f"at end {doc['load_average_end']}.", ""]
     for name, info in doc["models"].items():
