@@ -21,7 +21,10 @@ Gaps: bus silence up to ``max_gap_s`` is filled with held (stale, hence invalid)
 the next row ``discontinuity`` (the localiser restarts its window). A clock that jumps back by
 more than ``max_backstep_s`` (a logger or gateway clock reset, not jitter) re-bases the grid
 and every held timestamp by the jump, so rows and ages continue without a loss
-(``stats.clock_jumps``).
+(``stats.clock_jumps``). A jump back must be confirmed by the next frame (within
+``max_backstep_s`` of it): a lone frame with an old outlier timestamp is ``REJECTED_TIMESTAMP``
+and moves nothing (the first frame after a real jump back is lost that way). A lone frame far in
+the future re-anchors at once (after a real silence nothing else would start the grid again).
 
 Stuck sensors (:class:`StuckCheck`): a signal whose value has not changed for ``hold_s``
 while the car moves (speedometer >= ``min_speed_mps``) and a witness signal moved by more
@@ -138,6 +141,7 @@ class Assembler:
         self._stuck_hi = {c.index: np.full(len(c.witness), -math.inf) for c in self.stuck_checks}
         self._frozen = np.zeros(schema.NUM_SIGNALS, dtype=bool)
         self.last_frame_t_s = -math.inf  # newest frame of any kind [s]
+        self._jump_t_s: float | None = None  # timestamp of an unconfirmed clock jump [s]
         self.values = np.zeros(schema.NUM_SIGNALS)
         self.last_t_s = np.full(schema.NUM_SIGNALS, -math.inf)
         self.quality_ok = np.zeros(schema.NUM_SIGNALS, dtype=bool)
@@ -194,7 +198,13 @@ class Assembler:
             for index in self._stuck_since:
                 self._stuck_since[index] = t
         else:
-            if t < self.last_frame_t_s - self.max_backstep_s:
+            back = t < self.last_frame_t_s - self.max_backstep_s
+            if back:
+                candidate, self._jump_t_s = self._jump_t_s, t
+                if candidate is None or abs(t - candidate) > self.max_backstep_s:
+                    return FrameStatus.REJECTED_TIMESTAMP, rows  # wait for the next frame to confirm
+            self._jump_t_s = None
+            if back:
                 self._rebase(t - self.last_frame_t_s)
             if t - self._t(self._k_next) > self.max_gap_s:
                 self._reanchor(t)

@@ -23,6 +23,7 @@ class FrameStatus(IntEnum):
     REJECTED_NONFINITE = 7  # every mapped value NaN/inf
     REJECTED_INVALID = 8  # every mapped value flagged invalid by its quality bit
     REJECTED_LATE = 9  # older than the values already held for all its signals (out of order)
+    REJECTED_TIMESTAMP = 10  # a clock jump not (yet) confirmed by the next frame: a lone outlier timestamp
 
     @property
     def is_rejected(self) -> bool:
