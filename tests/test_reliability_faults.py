@@ -339,3 +339,36 @@ def test_non_finite_model_output_means_predict_only_then_recovery(setup, clean, 
     std = run.pos_std[k0:k1]
     assert np.all(np.diff(std) > 0)
     assert deviation_from_clean(run, clean).max() < 2.0
+
+
+class _BusOffBus:
+    """A python-can bus that goes bus-off (recv raises) for a while, then delivers frames again."""
+
+    def __init__(self, frames: list, fail_from: int, fail_count: int) -> None:
+        self.frames, self.i, self.fail_from, self.fail_left = list(frames), 0, fail_from, fail_count
+
+    def recv(self, timeout=None):
+        if self.i == self.fail_from and self.fail_left > 0:
+            self.fail_left -= 1
+            raise can.CanOperationError("bus-off")
+        if self.i >= len(self.frames):
+            return None
+        self.i += 1
+        return self.frames[self.i - 1]
+
+    def shutdown(self) -> None:
+        pass
+
+
+def test_bus_off_errors_are_counted_and_the_loop_keeps_going(setup):
+    from prml2_edge.runtime.source import BusSource
+
+    _, drive, frames, model, _ = setup
+    bus = _BusOffBus(frames[:4000], fail_from=2000, fail_count=5)
+    source = BusSource(bus)
+    sink = ListSink()
+    pipeline = Pipeline.build(model=model, sinks=[sink])
+    run_source(pipeline, source, should_stop=lambda: bus.i >= 4000, timeout_s=0.001)
+    assert source.errors == 5 and "bus-off" in source.last_error
+    assert source.received == 4000 and pipeline.stats.received == 4000 and pipeline.stats.balanced()
+    assert np.isfinite(sink.outs[-1].x).all() and sink.outs[-1].t_s > 9.0
