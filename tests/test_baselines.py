@@ -68,3 +68,22 @@ def test_train_export_and_run_in_the_runtime(kind, toy_data, tmp_path):
     with torch.no_grad():
         mean_t, _ = model(torch.as_tensor(windows[:1], dtype=torch.float32))
     np.testing.assert_allclose(rt.mean, mean_t[0].numpy(), atol=1e-3)
+
+
+def test_cli_train_model_name_then_export(tmp_path, capsys):
+    """``prml2 train --model NAME`` trains a baseline; ``prml2 export`` exports it for the runtime."""
+    from prml2_edge.cli.main import main
+    from prml2_edge.data.datasets import generate_dataset
+
+    data = generate_dataset(tmp_path / "data", {"name": "b", "drives": [
+        {"name": "dry_a", "family": "mixed", "mu": 1.0, "seed": 3, "minutes": 1.0, "role": "dry"}]},
+        workers=1, progress=False)
+    run = tmp_path / "run"
+    assert main(["train", "--data", str(data), "--out", str(run), "--model", "nn-vdm", "--hidden", "8",
+                 "--epochs", "1", "--batch-size", "4", "--max-train-windows", "4", "--threads", "1",
+                 "--window-stride", "100"]) == 0
+    assert (run / "best.pt").is_file() and (run / "summary.json").is_file()
+    out = tmp_path / "nn-vdm.onnx"
+    assert main(["export", "--checkpoint", str(run / "best.pt"), "--out", str(out)]) == 0
+    assert OnnxModel(out).metadata.preset == "baseline:nn-vdm"
+    assert "nn-vdm" in capsys.readouterr().out

@@ -80,7 +80,10 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix != ".onnx":
         raise ConfigError(f"--out must end in .onnx, got {out.name}")
-    model, ckpt = load_model(args.checkpoint)
+    from prml2_edge.training.baselines.train import is_baseline_checkpoint, load_baseline
+
+    model, ckpt = load_baseline(args.checkpoint) if is_baseline_checkpoint(args.checkpoint) else \
+        load_model(args.checkpoint)
     meta = metadata_for(model, ckpt)
     fp32_path = out.with_name(out.stem + ".fp32.onnx") if args.int8 else out
     export_onnx(model, meta, fp32_path)

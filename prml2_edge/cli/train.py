@@ -5,6 +5,8 @@ Examples::
     prml2 train --data data/bench --out runs/edge --preset edge            # PRML2 (the shipped recipe)
     prml2 train --data data/bench --out runs/edge_star --preset edge --no-finetune   # PRML2*
     prml2 train --data data/bench --out runs/edge --preset edge --resume runs/edge/last.pt
+    prml2 train --data data/bench --out runs/nn-vdm --model nn-vdm   # a learned baseline (also dl-avl,
+                                                                      # rnn-ekf, backprop-kf)
     torchrun --nproc_per_node 2 -m prml2_edge.cli.main train --data data/bench --out runs/ddp --preset edge
 
 Writes ``RUN/best.pt`` (export this), ``RUN/last.pt`` (resume from this), ``RUN/metrics.jsonl``,
@@ -24,6 +26,7 @@ HELP = "Train a PRML2 model (NLL pretraining, then fine-tuning through the diffe
 NEEDS: tuple[tuple[str, str], ...] = (("torch", "train"),)
 
 PRESET_NAMES = ("paper", "edge", "tiny")  # kept here so --help works without importing torch
+MODEL_NAMES = ("prml2", "nn-vdm", "dl-avl", "rnn-ekf", "backprop-kf")  # baselines: prml2_edge.training.baselines
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -32,6 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="RUN", help="run folder for checkpoints, metrics and plots")
     parser.add_argument("--preset", default="edge", choices=PRESET_NAMES,
                         help="model size and training defaults (default: edge, the shipped one)")
+    parser.add_argument("--model", default="prml2", choices=MODEL_NAMES,
+                        help="what to train: prml2 (default) or a learned baseline of the paper's Table 1-2")
+    parser.add_argument("--hidden", type=int, default=48, help="baselines: hidden size (default 48)")
     parser.add_argument("--no-finetune", action="store_true",
                         help="PRML2*: NLL pretraining for all epochs, no fine-tuning through the EKF")
     parser.add_argument("--epochs", type=int, help="total epochs (70%% pretraining, 30%% fine-tuning)")
@@ -48,7 +54,44 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="skip the final validation (z RMSE, 60 s dead reckoning)")
 
 
+def _run_baseline(args: argparse.Namespace) -> int:
+    """``--model NAME`` for a learned baseline: same data, windows and statistics as PRML2's trainer."""
+    from dataclasses import replace
+
+    from prml2_edge.data.datasets import load_dataset
+    from prml2_edge.training.baselines.models import BaselineConfig
+    from prml2_edge.training.baselines.train import BaselineTrainConfig, fit_baseline
+    from prml2_edge.training.presets import get_preset, with_overrides
+    from prml2_edge.training.trainer import prepare_data
+
+    t0 = time.monotonic()
+    if args.resume or args.no_finetune:
+        from prml2_edge.errors import ConfigError
+
+        raise ConfigError("--resume and --no-finetune apply to --model prml2 only")
+    preset = get_preset(args.preset)
+    train_cfg = with_overrides(preset.train, {"window_stride": args.window_stride})
+    tcfg = BaselineTrainConfig(epochs=6, max_train_windows=4096, lr=2e-3, num_threads=1)
+    tcfg = replace(tcfg, **{k: v for k, v in {"epochs": args.epochs, "batch_size": args.batch_size, "lr": args.lr,
+                                              "seed": args.seed, "num_threads": args.threads,
+                                              "max_train_windows": args.max_train_windows}.items() if v is not None})
+    cfg = BaselineConfig(kind=args.model, hidden=args.hidden)
+    dataset = load_dataset(args.data)
+    data = prepare_data(dataset, preset.model, train_cfg)
+    print(f"prml2 train: baseline {args.model} (hidden {args.hidden}), {tcfg.epochs} epochs of at most "
+          f"{tcfg.max_train_windows or len(data.train)} of {len(data.train)} training windows, dataset "
+          f"{dataset.fingerprint[:12]}")
+    best = fit_baseline(data, args.out, cfg, tcfg)
+    summary = {"model": args.model, "data": str(args.data), "dataset_fingerprint": dataset.fingerprint,
+               "model_config": asdict(cfg), "train_config": asdict(tcfg), "total_wall_s": time.monotonic() - t0}
+    Path(args.out, "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True, default=str))
+    print(f"done in {summary['total_wall_s'] / 60:.1f} min: {best} (export it with 'prml2 export --checkpoint')")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if getattr(args, "model", "prml2") != "prml2":
+        return _run_baseline(args)
     import torch
 
     from prml2_edge.data.datasets import load_dataset

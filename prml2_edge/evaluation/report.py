@@ -42,9 +42,10 @@ def _pm(mean: float | None, std: float | None, nd: int = 1) -> str:
     return "–" if mean is None else f"{mean:.{nd}f} ± {_f(std, nd)}"
 
 
-def _rm(d: dict) -> str:
+def _rm(d: dict, nd: int = 1) -> str:
     """``RMSE | ME`` cells of a dead-reckoning summary."""
-    return f"{_pm(d.get('rmse_mean_m'), d.get('rmse_std_m'))} | {_pm(d.get('me_mean_m'), d.get('me_std_m'))}"
+    return (f"{_pm(d.get('rmse_mean_m'), d.get('rmse_std_m'), nd)} | "
+            f"{_pm(d.get('me_mean_m'), d.get('me_std_m'), nd)}")
 
 
 def _z_row(z: dict) -> list[float | None]:
@@ -111,8 +112,11 @@ def render_report(metrics: dict) -> str:
             d = row["dead_reckoning_60s"]
             paper = PAPER_TABLE3.get((row["guard"], row["uncertainty"]))
             lines.append(f"| {'✓' if row['guard'] else ''} | {'✓' if row['uncertainty'] else ''} | ✓ | "
-                         f"{_rm(d)}"
+                         f"{_rm(d, 2)}"
                          f" | {d['n_windows']} | {f'{paper[0]} / {paper[1]}' if paper else ''} |")
+        fire = metrics["models"].get(abl["model"], {}).get("test", {}).get("dead_reckoning_60s", {})
+        lines += ["", f"Guard fire rate of {abl['model']} on these windows: "
+                  f"{100 * (fire.get('guard_fire_rate') or 0.0):.3f} % of used predictions."]
         lines += ["", "Guard off: no friction-circle bound on (a_x, a_y) (speed and yaw-rate bounds stay); "
                   "uncertainty off: constant variances = the model's z residual MSE on the validation split.", ""]
     # Tuning and figures
