@@ -225,9 +225,9 @@ class StreamingLocalizer:
             self._output_ok = False
             self.n_inference_failures += 1
         else:
-            # Only the last `stride` decoder steps are ever consumed (one per 50 Hz step until the next
-            # window), so only they are guarded and counted: the guard statistics are over used predictions.
-            used = slice(max(self.decoder_len - self.config.stride, 0), self.decoder_len)
+            # Only the newest decoder step is ever consumed (held until the next window, see _feed), so only
+            # it is guarded and counted: the guard statistics are over used predictions.
+            used = slice(self.decoder_len - 1, self.decoder_len)
             mean, var, fired = physics_guard(self.model.mean[used], self.model.var[used], self.a_max_mps2)
             self._z_mean[used] = mean
             self._z_var[used] = var
@@ -250,9 +250,11 @@ class StreamingLocalizer:
         if self.window.full and (self._inf_count < 0 or self.window.count - self._inf_count >= self.config.stride):
             inferred = self._infer()
         if self._output_ok and all_valid and self._inf_count >= 0:
+            # Causal streaming: between windows (stride > 1) the newest window's newest output, the estimate
+            # for step k - offset, is held; older decoder rows describe older steps and are never used.
             offset = self.window.count - self._inf_count
-            if offset < self.decoder_len:
-                j = self.decoder_len - 1 - offset
+            if offset < self.config.stride:
+                j = self.decoder_len - 1
                 return inferred, self._z_mean[j], self._z_var[j], bool(self._fired[j])
         return inferred, None, None, False
 
