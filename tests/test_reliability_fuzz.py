@@ -150,3 +150,15 @@ def test_ekf_covariance_stays_spd_under_mixed_updates_predictions_and_fixes(ops)
         assert status in (StepStatus.SUCCESS, StepStatus.PREDICT_ONLY, StepStatus.RESET)
         assert ekf.x.shape == (STATE_DIM,) and np.isfinite(ekf.x).all()
         assert _spd(ekf.P), np.linalg.eigvalsh(ekf.P)
+
+
+def test_latency_samples_are_bounded_for_a_service_running_for_days():
+    from prml2_edge.runtime.latency import LatencyRecorder
+
+    rec = LatencyRecorder(max_samples=1000)
+    for i in range(10_000):
+        rec.add("end_to_end", 1_000_000 + i)
+    assert rec.total("end_to_end") == 10_000 and rec.count("end_to_end") <= 1000
+    assert rec.dropped + rec.count("end_to_end") == 10_000
+    recent = rec.stage_summary("end_to_end", since_total=9_990)  # the status line: since the last report
+    assert recent["count"] == 10 and recent["max_ms"] == pytest.approx(1.009999)

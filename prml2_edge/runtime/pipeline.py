@@ -196,8 +196,8 @@ class Pipeline:
         now = time.monotonic()
         win = self._interval
         dt = max(now - win.t_wall, 1e-9)
-        e2e = self.latency.stage_summary("end_to_end", since=win.e2e_index)
-        self._interval = _Window(now, e2e_index=self.latency.count("end_to_end"))
+        e2e = self.latency.stage_summary("end_to_end", since_total=win.e2e_index)
+        self._interval = _Window(now, e2e_index=self.latency.total("end_to_end"))
         parts = [f"{win.frames / dt:.0f} frames/s", f"{win.rows / dt:.1f} rows/s"]
         silent_s = now - self._last_frame_wall
         if silent_s > 1.0:
