@@ -37,6 +37,7 @@ class TorchStep:
     t_s: float
     x: np.ndarray
     inferred: bool
+    bus_silent: bool = False
 
 
 class TorchEagerLocalizer:
@@ -55,7 +56,7 @@ class TorchEagerLocalizer:
         self.P: torch.Tensor | None = None
 
     def step(self, values: np.ndarray, valid: np.ndarray, t_s: float, gnss=None,
-             discontinuity: bool = False) -> TorchStep:
+             discontinuity: bool = False, bus_silent: bool = False) -> TorchStep:
         all_valid = bool(np.all(valid))
         self.window.step(values, all_valid)
         z = z_var = None
@@ -89,7 +90,7 @@ class TorchEagerLocalizer:
                     self.x, self.P = ekf_torch.update(self.x, self.P, z, z_var)
             x = self.x[0].numpy().copy()
         self.latency.add("filter", time.perf_counter_ns() - t_filter)
-        return TorchStep(t_s, x, inferred)
+        return TorchStep(t_s, x, inferred, bus_silent)
 
 
 def torch_pipeline(model: Prml2Model, initial_pose: InitialPose, signal_map: str = "prml2_onboard",
