@@ -158,17 +158,21 @@ def config_from_dict(data: dict, source: str = "config") -> RuntimeConfig:
         raise ConfigError(f"{source}: {exc}") from None
 
 
-def load_config(path: str | Path) -> RuntimeConfig:
-    """Read a runtime TOML file; every problem is one :class:`ConfigError` line naming the key."""
+def read_toml(path: str | Path, what: str = "config file") -> dict:
+    """Parse a TOML file; a missing file or bad syntax is one :class:`ConfigError` line naming the file."""
     path = Path(path)
     try:
         with open(path, "rb") as f:
-            data = tomllib.load(f)
+            return tomllib.load(f)
     except FileNotFoundError:
-        raise ConfigError(f"{path}: config file not found") from None
+        raise ConfigError(f"{path}: {what} not found") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from exc
-    return config_from_dict(data, str(path))
+
+
+def load_config(path: str | Path) -> RuntimeConfig:
+    """Read a runtime TOML file; every problem is one :class:`ConfigError` line naming the key."""
+    return config_from_dict(read_toml(path), str(path))
 
 
 def with_overrides(cfg: RuntimeConfig, **sections: dict) -> RuntimeConfig:

@@ -63,20 +63,14 @@ def open_session_model(path: str | Path, threads: int = 1, spinning: bool | None
     """The runtime's :class:`OnnxModel` for ``path`` (``providers`` as the runtime takes them: ``tensorrt``,
     ``cuda``, ``cpu``); ``spinning`` True re-creates its CPU session with onnxruntime's intra-op thread
     spinning on (the runtime default is off), for comparison."""
-    from prml2_edge.runtime.inference import OnnxModel
+    from prml2_edge.runtime.inference import OnnxModel, session_options
 
     model = OnnxModel(path, threads=threads, providers=providers)
     if spinning and model.providers == ["CPUExecutionProvider"]:
         import onnxruntime as ort
 
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = int(threads)
-        opts.inter_op_num_threads = 1
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        opts.add_session_config_entry("session.intra_op.allow_spinning", "1")
-        opts.log_severity_level = 3
-        model.session = ort.InferenceSession(str(model.path), sess_options=opts, providers=model.providers)
+        model.session = ort.InferenceSession(str(model.path), sess_options=session_options(threads, spinning=True),
+                                             providers=model.providers)
     return model
 
 

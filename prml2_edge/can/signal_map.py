@@ -14,7 +14,6 @@ unsigned magnitude plus sign bit). Unknown keys are refused with the key's name.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,6 +21,7 @@ import cantools
 
 from prml2_edge import schema
 from prml2_edge.can.checksum import CHECKSUMS
+from prml2_edge.config import read_toml
 from prml2_edge.errors import ConfigError, DbcError
 from prml2_edge.resources import resource_path
 
@@ -139,13 +139,7 @@ def _typed(where: str, key: str, value: object, kind: type) -> object:
 def load_signal_map(path: str | Path) -> SignalMap:
     """Read and validate a signal map TOML file (keys and types; not yet against a DBC)."""
     path = Path(path)
-    try:
-        with open(path, "rb") as f:
-            doc = tomllib.load(f)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: signal map not found") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML ({exc})") from exc
+    doc = read_toml(path, "signal map")
     _check_keys(str(path), doc, _TOP_KEYS)
     head = _table(f"{path} [map]", doc.get("map", {}))
     _check_keys(f"{path} [map]", head, _MAP_KEYS)

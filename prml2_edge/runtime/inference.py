@@ -42,6 +42,23 @@ def default_model_path() -> Path:
                      "pass --model PATH (an ONNX file from 'prml2 export')")
 
 
+def session_options(threads: int = 1, spinning: bool = False):
+    """The runtime's ONNX Runtime session options: ``threads`` intra-op threads, one inter-op thread,
+    sequential execution, all graph optimisations, thread spinning off unless ``spinning``."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = int(threads)
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    flag = "1" if spinning else "0"
+    opts.add_session_config_entry("session.intra_op.allow_spinning", flag)
+    opts.add_session_config_entry("session.inter_op.allow_spinning", flag)
+    opts.log_severity_level = 3
+    return opts
+
+
 def _dim_ok(dim: object, want: int) -> bool:
     return not isinstance(dim, int) or dim == want  # symbolic dims (strings/None) accept any size
 
@@ -73,14 +90,7 @@ class OnnxModel:
             raise ModelError(f"{self.path}: model file not found")
         if threads < 1:
             raise ModelError(f"threads must be >= 1, got {threads}")
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = int(threads)
-        opts.inter_op_num_threads = 1
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
-        opts.log_severity_level = 3
+        opts = session_options(threads)
         choice = select_providers(providers, trt_cache_dir=trt_cache_dir, trt_fp16=trt_fp16)
         self.provider_choice = choice
         try:
