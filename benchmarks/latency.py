@@ -19,7 +19,6 @@ Writes ``benchmarks/results/latency.json`` and updates the table in ``benchmarks
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -170,13 +169,9 @@ def main(argv: list[str] | None = None) -> int:
     doc["ratios"] = targets.ratios(configs)
     doc["fraction_of_gemm"] = targets.fraction_of_gemm(configs, gemm)
     doc["targets"] = targets.latency_targets(doc)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1, sort_keys=False))
+    out = report.save(doc, args.out, update=not args.quick)
     for line in report.latency_lines(doc):
         print(line)
-    if not args.quick:
-        report.update_readme()
     print(f"wrote {out}")
     return 0
 

@@ -14,7 +14,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -128,10 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         "model": args.model, "model_source": bm["source"], "torch_imported": "torch" in sys.modules,
         "drive_minutes": args.minutes, "data_s": duration_s, "log": str(log_path), "runs": runs,
     }
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1))
-    report.update_readme()
+    out = report.save(doc, args.out)
     print(f"wrote {out}")
     return 0
 

@@ -130,6 +130,16 @@ def targets_markdown(latency: dict | None) -> list[str]:
     return out
 
 
+def save(doc: dict, out: str | Path, update: bool = True) -> Path:
+    """Write a result ``doc`` as JSON to ``out`` and, unless ``update`` is False, refresh the README table."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=1))
+    if update:
+        update_readme()
+    return out
+
+
 def update_readme() -> None:
     """Replace the block between the result markers in ``benchmarks/README.md`` with the current results."""
     latency, replay, training = _load("latency"), _load("replay"), _load("training")

@@ -89,10 +89,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(presets[-1]))
     doc = {"benchmark": "training", "started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(t_start)),
            "machine": machine, "load_average_end": load_average(), "dataset": str(DATASET), "presets": presets}
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1))
-    report.update_readme()
+    out = report.save(doc, args.out)
     print(f"wrote {out}")
     return 0
 
