@@ -23,9 +23,9 @@ import torch
 
 from prml2_edge import schema
 from prml2_edge.bench.quantize import quantize_int8, quantize_prml2
-from prml2_edge.training.export_onnx import export_onnx, metadata_for
+from prml2_edge.training.export_onnx import export_onnx, metadata_for, model_from_onnx
 from prml2_edge.training.model import Prml2Model
-from prml2_edge.training.presets import get_preset, model_config_from_dict
+from prml2_edge.training.presets import get_preset
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paths import DATASET, MODEL_DIR, REPO, SHIPPED_EDGE  # noqa: E402
@@ -34,7 +34,8 @@ from paths import DATASET, MODEL_DIR, REPO, SHIPPED_EDGE  # noqa: E402
 @dataclass
 class BenchModel:
     name: str  # "edge" | "paper"
-    fp32: Path
+    fp32: Path  # streaming graph: the newest decoder step only (what the runtime consumes; prml2 export's default)
+    fp32_all: Path  # every decoder step (the graph before streaming exports), for the side-by-side
     int8: Path  # quantize_prml2: per-channel, weights only, first/last layers fp32
     int8_plain: Path  # onnxruntime's defaults (per tensor, every MatMul): for the RMSE comparison only
     torch_model: Prml2Model
@@ -59,29 +60,9 @@ def _dataset_stats(dataset_root: Path):
 
 
 def _torch_from_onnx(path: Path) -> tuple[Prml2Model, dict]:
-    """A torch model with the ONNX model's config and weights (initialisers matched by name)."""
-    import onnx
-    from onnx import numpy_helper
-
-    from prml2_edge.model_meta import METADATA_KEY, ModelMetadata
-
-    proto = onnx.load(str(path))
-    meta = ModelMetadata.from_json(next(p.value for p in proto.metadata_props if p.key == METADATA_KEY))
-    cfg_dict = {k: v for k, v in meta.config.items() if k not in ("z_mean", "z_std")}
-    cfg = model_config_from_dict(cfg_dict)
-    model = Prml2Model(cfg, meta.norm_mean, meta.norm_std, meta.config.get("z_mean", [0.0] * schema.NUM_STATES),
-                       meta.config.get("z_std", [1.0] * schema.NUM_STATES))
-    inits = {t.name: numpy_helper.to_array(t) for t in proto.graph.initializer}
-    state = model.state_dict()
-    loaded = 0
-    with torch.no_grad():
-        for name, tensor in state.items():
-            arr = inits.get(name)
-            if arr is not None and tuple(arr.shape) == tuple(tensor.shape):
-                tensor.copy_(torch.as_tensor(arr))
-                loaded += 1
-    model.load_state_dict(state)
-    return model.eval(), {"config": asdict(cfg), "weights_loaded": loaded, "weights_total": len(state)}
+    """A torch model with the ONNX model's config and weights (:func:`model_from_onnx`)."""
+    model, _, info = model_from_onnx(path)
+    return model, info
 
 
 def prepare(name: str, out_dir: Path = MODEL_DIR, seed: int = 0, checkpoint: str | Path | None = None) -> BenchModel:
@@ -91,19 +72,22 @@ def prepare(name: str, out_dir: Path = MODEL_DIR, seed: int = 0, checkpoint: str
     then the exact twin of the ONNX graph.
     """
     out_dir.mkdir(parents=True, exist_ok=True)
+    ckpt: dict = {"preset": name}
+    stem = name
     if checkpoint is not None:
         from prml2_edge.training.checkpoint import load_model
 
         model, ckpt = load_model(checkpoint)
-        fp32 = export_onnx(model, metadata_for(model, ckpt), out_dir / f"{name}_trained.onnx")
+        stem = f"{name}_trained"
         trained = True
         source = (f"{ckpt.get('preset')} preset trained checkpoint {checkpoint} (epoch {ckpt.get('epoch')}, "
                   f"stage {ckpt.get('stage')}), exported here")
     elif name == "edge" and SHIPPED_EDGE.is_file():
-        fp32 = SHIPPED_EDGE
-        model, info = _torch_from_onnx(fp32)
+        model, ckpt, info = model_from_onnx(SHIPPED_EDGE)
+        stem = "edge_shipped"
         trained, source = True, f"shipped {SHIPPED_EDGE.relative_to(REPO)}"
-        source += f" (torch twin: {info['weights_loaded']}/{info['weights_total']} tensors from the ONNX file)"
+        source += (f" (torch twin: {info['weights_loaded']}/{info['weights_total']} tensors from the ONNX file, "
+                   "re-exported here)")
     else:
         torch.manual_seed(seed)
         cfg = get_preset(name).model
@@ -118,12 +102,13 @@ def prepare(name: str, out_dir: Path = MODEL_DIR, seed: int = 0, checkpoint: str
             model.init_skip(rows, z_rows)
             source = (f"{name} preset, initial transformer weights (seed {seed}), linear skip fitted on "
                       f"{DATASET.relative_to(REPO)} train split")
-        model.eval()
-        fp32 = export_onnx(model, metadata_for(model, {"preset": name}), out_dir / f"{name}.onnx")
         trained = False
+    model.eval()
+    fp32_all = export_onnx(model, metadata_for(model, ckpt), out_dir / f"{stem}_all_rows.onnx")
+    fp32 = export_onnx(model, metadata_for(model, ckpt), out_dir / f"{stem}.onnx", rows=1)
     int8 = quantize_prml2(fp32, out_dir / f"{fp32.stem}_int8.onnx")
     int8_plain = quantize_int8(fp32, out_dir / f"{fp32.stem}_int8_plain.onnx")
-    return BenchModel(name, fp32, int8, int8_plain, model.eval(), asdict(model.cfg), trained, source)
+    return BenchModel(name, fp32, fp32_all, int8, int8_plain, model.eval(), asdict(model.cfg), trained, source)
 
 
 def test_windows(stride: int = 50, limit: int = 200):

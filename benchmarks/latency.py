@@ -66,6 +66,8 @@ def run_model(bm: bench_models.BenchModel, threads: int, seconds: float, warmup_
     replay = simulated_frames(seconds, seed=seed)
     pipes = {
         "onnx-fp32": build_pipeline(open_session_model(bm.fp32, threads=threads), replay.initial_pose),
+        # the same weights as a graph returning every decoder step (before streaming exports): report only
+        "onnxall-fp32": build_pipeline(open_session_model(bm.fp32_all, threads=threads), replay.initial_pose),
         "onnx-int8": build_pipeline(open_session_model(bm.int8, threads=threads), replay.initial_pose),
         "torch-fp32": torch_pipeline(bm.torch_model, replay.initial_pose),
     }
@@ -80,9 +82,9 @@ def run_model(bm: bench_models.BenchModel, threads: int, seconds: float, warmup_
         for name, pipe in pipes.items():
             samples[name].extend(measure_steps(pipe, chunk))
     load_after = load_average()
-    flops = inference_flops(bm.config)["total"]
     out = []
     for name, s in samples.items():
+        flops = inference_flops(bm.config, None if name.startswith("onnxall") else 1)["total"]
         summ = s.summary()
         p50 = summ["model_ms"]["p50"]
         out.append({
@@ -141,7 +143,8 @@ def main(argv: list[str] | None = None) -> int:
     for name in models:
         bm = bench_models.prepare(name, seed=args.seed, checkpoint=args.edge_checkpoint if name == "edge" else None)
         model_info[name] = {"source": bm.source, "trained": bm.trained, "config": bm.config,
-                            "flops": inference_flops(bm.config), "fp32": str(bm.fp32), "int8": str(bm.int8)}
+                            "flops": inference_flops(bm.config, 1), "flops_all_rows": inference_flops(bm.config),
+                            "fp32": str(bm.fp32), "fp32_all_rows": str(bm.fp32_all), "int8": str(bm.int8)}
         seconds = args.seconds_edge if name == "edge" else args.seconds_paper
         for n in threads:
             print(f"[latency] {name}, {n} thread(s), load {load_average()}", file=sys.stderr, flush=True)

@@ -7,7 +7,9 @@ z mean and variance for the L - H decoder steps *before* the physics guard: the 
 in NumPy (``prml2_edge.guard``) so the runtime can set the friction coefficient.
 
 Graph contract: input ``onboard`` float32 (1, L, 9); outputs ``z_mean`` and ``z_var``
-float32 (1, L - H, 5), ``z_var > 0``.
+float32 (1, R, 5), ``z_var > 0``, for the newest R = ``output_rows`` decoder steps (None: all
+L - H of them). The streaming runtime consumes only the newest row, so ``prml2 export`` writes
+R = 1 by default: the last decoder layer then computes one query row instead of L - H.
 """
 
 from __future__ import annotations
@@ -55,6 +57,12 @@ class ModelMetadata:
     guard_in_graph: bool = False
     guard: dict = field(default_factory=guard_limits)
     schema_hash: str = schema.SCHEMA_HASH
+    output_rows: int | None = None  # decoder steps the graph returns, the newest ones (None: all L - H)
+
+    @property
+    def rows(self) -> int:
+        """Rows of ``z_mean``/``z_var``: ``output_rows``, or L - H when the graph returns every decoder step."""
+        return int(self.output_rows) if self.output_rows is not None else int(self.L - self.H)
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=True)
@@ -90,6 +98,8 @@ class ModelMetadata:
             raise ModelError(f"{source}: normalisation statistics have the wrong length")
         if not (0 < self.H < self.L):
             raise ModelError(f"{source}: bad window geometry L={self.L}, H={self.H}")
+        if not (isinstance(self.rows, int) and 1 <= self.rows <= self.L - self.H):
+            raise ModelError(f"{source}: output_rows={self.output_rows} outside [1, L - H = {self.L - self.H}]")
         if self.schema_hash != schema.SCHEMA_HASH:
             raise ModelError(
                 f"{source}: schema hash {self.schema_hash} differs from this runtime's {schema.SCHEMA_HASH}; "

@@ -110,3 +110,99 @@ def test_cli_export_user_errors_are_one_line(trained, tmp_path, capsys):
     assert main(["export", "--checkpoint", str(tmp_path / "none.pt"), "--out", str(tmp_path / "x.onnx")]) == 1
     err = capsys.readouterr().err
     assert "not found" in err and len(err.strip().splitlines()) == 1
+
+
+def test_newest_rows_forward_equals_the_full_forward(trained):
+    model, _, _ = trained
+    x = torch.as_tensor(_windows(3, seed=2))
+    with torch.no_grad():
+        mean, var = model(x)
+        for rows in (1, 7, 100):
+            m, v = model(x, rows=rows)
+            assert m.shape == (3, rows, 5)
+            torch.testing.assert_close(m, mean[:, -rows:], rtol=1e-5, atol=1e-5)
+            torch.testing.assert_close(v, var[:, -rows:], rtol=1e-5, atol=1e-6)
+    from prml2_edge.errors import ModelError
+
+    with pytest.raises(ModelError, match="rows must be in"):
+        model(x, rows=0)
+
+
+def test_streaming_export_returns_the_newest_row_with_its_metadata(trained, tmp_path):
+    from prml2_edge.runtime.inference import OnnxModel
+
+    model, ckpt, _ = trained
+    full = export_onnx(model, metadata_for(model, ckpt), tmp_path / "full.onnx")
+    one = export_onnx(model, metadata_for(model, ckpt), tmp_path / "one.onnx", rows=1)
+    proto = onnx.load(str(one))
+    dims = {v.name: [d.dim_value for d in v.type.tensor_type.shape.dim] for v in proto.graph.output}
+    assert dims == {OUTPUT_NAMES[0]: [1, 1, 5], OUTPUT_NAMES[1]: [1, 1, 5]}
+    assert read_metadata(one).output_rows == 1 and read_metadata(full).output_rows is None
+    assert read_metadata(full).rows == 100
+    diff = parity(model, one, _windows(100))
+    assert diff["mean"] <= 1e-4 and diff["var"] <= 1e-4, diff
+    w = _windows(1, seed=4)
+    a, b = OnnxModel(full), OnnxModel(one)
+    assert a.step(w).name == b.step(w).name == "SUCCESS"
+    assert b.mean.shape == (1, 5) and a.mean.shape == (100, 5)
+    np.testing.assert_allclose(b.mean[-1], a.mean[-1], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(b.var[-1], a.var[-1], rtol=1e-5, atol=1e-7)
+    # the int8 recipe keeps head/skip/input projection in float also under the wrapper's "/model/" names
+    q = quantize_int8(one, tmp_path / "one8.onnx")
+    assert read_metadata(q).output_rows == 1
+    names = {n.name for n in onnx.load(str(q)).graph.node if n.op_type == "MatMul"}
+    assert any("/head/" in n for n in names) and any("/skip/" in n for n in names)
+
+
+def test_metadata_with_impossible_output_rows_is_refused(trained, tmp_path):
+    from dataclasses import replace
+
+    from prml2_edge.errors import ModelError
+
+    model, ckpt, _ = trained
+    meta = replace(metadata_for(model, ckpt), output_rows=101)
+    with pytest.raises(ModelError, match="output_rows=101"):
+        meta.check_schema()
+
+
+def test_reexport_from_onnx_recovers_every_weight(trained, tmp_path, capsys):
+    from prml2_edge.training.export_onnx import model_from_onnx
+
+    model, ckpt, _ = trained
+    full = export_onnx(model, metadata_for(model, ckpt), tmp_path / "full.onnx")
+    twin, _, info = model_from_onnx(full)
+    assert info["weights_loaded"] == info["weights_total"]
+    for (name, a), (_, b) in zip(model.state_dict().items(), twin.state_dict().items(), strict=True):
+        torch.testing.assert_close(a, b, msg=name)
+    out = tmp_path / "stream.onnx"
+    assert main(["export", "--checkpoint", str(full), "--out", str(out)]) == 0
+    assert "newest 1 decoder step" in capsys.readouterr().out
+    meta = read_metadata(out)
+    assert meta.output_rows == 1 and meta.training == read_metadata(full).training
+    assert main(["export", "--checkpoint", str(full), "--out", str(out), "--rows", "0"]) == 1
+    err = capsys.readouterr().err
+    assert "--rows must be 'all' or a number from 1 to" in err and len(err.strip().splitlines()) == 1
+
+
+def test_streaming_graph_gives_the_full_graphs_trajectory(trained, tmp_path):
+    """The localiser consumes only the newest decoder row: both graphs give the same poses."""
+    from prml2_edge.runtime.inference import OnnxModel
+    from prml2_edge.runtime.localizer import LocalizerConfig, StreamingLocalizer
+
+    model, ckpt, _ = trained
+    full = export_onnx(model, metadata_for(model, ckpt), tmp_path / "full.onnx")
+    one = export_onnx(model, metadata_for(model, ckpt), tmp_path / "one.onnx", rows=1)
+    rng = np.random.default_rng(5)
+    n = schema.WINDOW_LEN + 120
+    onboard = NORM_MEAN + 0.3 * NORM_STD * rng.normal(size=(n, schema.NUM_SIGNALS))
+    x0 = np.zeros(8)
+    x0[4] = 12.0
+    trajs = []
+    for path in (full, one):
+        for stride in (1, 3):
+            loc = StreamingLocalizer(OnnxModel(path), LocalizerConfig(stride=stride, fuse_gnss=False))
+            trajs.append(loc.run_arrays(onboard, x0, start_index=schema.WINDOW_LEN - 1).x)
+    assert np.isfinite(trajs[0][-1]).all()
+    np.testing.assert_allclose(trajs[2], trajs[0], atol=1e-4)
+    np.testing.assert_allclose(trajs[3], trajs[1], atol=1e-4)
+    assert not np.allclose(trajs[0][-1], trajs[1][-1])  # the strides differ: the check can see a difference

@@ -127,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
                         "load_average": [load_before, load_average()],
                     }
                     try:
-                        flops = inference_flops(cfg)["total"]
+                        flops = inference_flops(cfg, model.metadata.output_rows)["total"]
                     except ValueError:
                         flops = None
                     record["flops"] = flops

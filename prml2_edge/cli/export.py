@@ -4,9 +4,12 @@ Examples::
 
     prml2 export --checkpoint runs/edge/best.pt --out export/default/prml2_edge.onnx
     prml2 export --checkpoint runs/edge/best.pt --out out/prml2_edge_int8.onnx --int8 --data data/bench
+    prml2 export --checkpoint old_all_rows.onnx --out prml2_stream.onnx     # re-export an exported model
 
 The graph has a fixed input ``onboard`` float32 (1, L, 9) in raw SI units and outputs ``z_mean``,
-``z_var`` (1, L - H, 5) before the physics guard (which runs in NumPy at runtime); the metadata
+``z_var`` (1, R, 5) before the physics guard (which runs in NumPy at runtime) for the newest
+R = ``--rows`` decoder steps: 1 by default, the one the streaming runtime consumes (the last decoder
+layer then computes a single query row), ``--rows all`` for every one of the L - H; the metadata
 (``prml2_edge.model_meta``) is embedded. Every export is checked against torch on at least 100
 windows (max abs difference <= 1e-4). ``--int8`` applies onnxruntime dynamic quantisation and
 prints the z RMSE of the fp32 and int8 graphs on validation windows (needs ``--data``); the fp32
@@ -25,11 +28,16 @@ PARITY_TOL = 1e-4
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--checkpoint", required=True, metavar="CKPT", help="checkpoint from prml2 train (best.pt)")
+    parser.add_argument("--checkpoint", required=True, metavar="CKPT",
+                        help="checkpoint from prml2 train (best.pt), or a PRML2 .onnx file to re-export "
+                             "(same weights and metadata; e.g. an older all-rows graph as a streaming one)")
     parser.add_argument("--out", required=True, metavar="ONNX", help="output .onnx file")
     parser.add_argument("--int8", action="store_true", help="dynamic int8 quantisation (reports the accuracy change)")
     parser.add_argument("--data", metavar="DIR",
                         help="dataset for parity and int8 accuracy windows (validation split); required with --int8")
+    parser.add_argument("--rows", default="1", metavar="N|all",
+                        help="decoder steps the graph returns, the newest ones: 1 (default; all the streaming "
+                             "runtime uses, and the cheapest graph) or 'all' (every one of the L - H)")
     parser.add_argument("--parity-windows", type=int, default=100, metavar="N",
                         help="windows for the torch/onnxruntime parity check (default 100, at least 100)")
 
@@ -58,9 +66,25 @@ def _windows(model, data_dir: str | None, n: int, seed: int = 0):
     return onboard, z[:, H:]
 
 
+def _rows(text: str, decoder_len: int) -> int | None:
+    """``--rows``: None for 'all', else an int in [1, decoder_len] (ConfigError otherwise)."""
+    from prml2_edge.errors import ConfigError
+
+    if text.strip().lower() == "all":
+        return None
+    try:
+        rows = int(text)
+    except ValueError:
+        rows = 0
+    if not 1 <= rows <= decoder_len:
+        raise ConfigError(f"--rows must be 'all' or a number from 1 to L - H = {decoder_len}, got {text!r}")
+    return rows
+
+
 def run(args: argparse.Namespace) -> int:
     import torch
 
+    from prml2_edge import __version__
     from prml2_edge.errors import ConfigError, ModelError
     from prml2_edge.training.checkpoint import load_model
     from prml2_edge.training.export_onnx import (
@@ -82,21 +106,31 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--out must end in .onnx, got {out.name}")
     from prml2_edge.training.baselines.train import is_baseline_checkpoint, load_baseline
 
-    model, ckpt = load_baseline(args.checkpoint) if is_baseline_checkpoint(args.checkpoint) else \
-        load_model(args.checkpoint)
-    meta = metadata_for(model, ckpt)
+    if args.checkpoint.endswith(".onnx"):  # re-export an exported model (e.g. as a newest-row streaming graph)
+        from dataclasses import replace
+
+        from prml2_edge.training.export_onnx import model_from_onnx
+
+        model, _, _ = model_from_onnx(args.checkpoint)
+        meta = replace(read_metadata(args.checkpoint), version=__version__)
+    else:
+        model, ckpt = load_baseline(args.checkpoint) if is_baseline_checkpoint(args.checkpoint) else \
+            load_model(args.checkpoint)
+        meta = metadata_for(model, ckpt)
+    rows = _rows(args.rows, model.cfg.window_len - model.cfg.encoder_len)
     fp32_path = out.with_name(out.stem + ".fp32.onnx") if args.int8 else out
-    export_onnx(model, meta, fp32_path)
+    export_onnx(model, meta, fp32_path, rows=rows)
     windows, z_dec = _windows(model, args.data, args.parity_windows)
     diff = parity(model, fp32_path, windows)
-    print(f"exported {fp32_path} ({fp32_path.stat().st_size / 1e6:.2f} MB, preset {meta.preset}, input 1x{meta.L}x9)")
+    print(f"exported {fp32_path} ({fp32_path.stat().st_size / 1e6:.2f} MB, preset {meta.preset}, input 1x{meta.L}x9, "
+          f"output the newest {rows or meta.L - meta.H} decoder step(s))")
     print(f"parity torch vs onnxruntime on {diff['n']} windows: max |d mean| {diff['mean']:.2e}, "
           f"max |d var| {diff['var']:.2e} (tolerance {PARITY_TOL:.0e})")
     if not (diff["mean"] <= PARITY_TOL and diff["var"] <= PARITY_TOL):
         raise ModelError(f"onnxruntime output differs from torch by {max(diff['mean'], diff['var']):.2e}; "
                          "report this with the checkpoint")
     if args.int8:
-        quantize_int8(fp32_path, out, meta)
+        quantize_int8(fp32_path, out)
         report = compare_int8(fp32_path, out, windows, z_dec)
         print(f"int8: {out} ({out.stat().st_size / 1e6:.2f} MB); z RMSE on {report['n_windows']} validation "
               "windows (before the guard), fp32 -> int8:")

@@ -40,6 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--hidden", type=int, default=48, help="baselines: hidden size (default 48)")
     parser.add_argument("--no-finetune", action="store_true",
                         help="PRML2*: NLL pretraining for all epochs, no fine-tuning through the EKF")
+    parser.add_argument("--nll-reduction", choices=("sum", "mean"),
+                        help="NLL over a window's decoder steps: 'sum' (the paper's) or 'mean' (the position term "
+                             "of fine-tuning then weighs in); default: the preset's")
     parser.add_argument("--epochs", type=int, help="total epochs (70%% pretraining, 30%% fine-tuning)")
     parser.add_argument("--batch-size", type=int, help="windows per optimizer step, over all processes")
     parser.add_argument("--lr", type=float, help="Adam learning rate at the start of each stage")
@@ -106,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     train_cfg = with_overrides(preset.train, {
         "epochs": args.epochs, "batch_size": args.batch_size, "lr": args.lr, "window_stride": args.window_stride,
         "seed": args.seed, "num_threads": args.threads, "max_train_windows": args.max_train_windows,
-        "finetune": False if args.no_finetune else None,
+        "finetune": False if args.no_finetune else None, "nll_reduction": args.nll_reduction,
     })
     train_cfg.validate()
     torch.set_num_threads(train_cfg.num_threads)

@@ -63,7 +63,7 @@ class ConstantVarianceModel:
         self._var = np.asarray(var, dtype=np.float64)
         if self._var.shape != (schema.NUM_STATES,) or not (self._var > 0).all():
             raise ValueError(f"var must be (5,) and positive, got {self._var}")
-        self.var = np.ones((self.decoder_len, schema.NUM_STATES))
+        self.var = np.ones((len(inner.mean), schema.NUM_STATES))  # as many rows as the inner model returns
 
     @property
     def mean(self) -> np.ndarray:

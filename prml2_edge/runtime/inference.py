@@ -7,7 +7,8 @@ from :func:`prml2_edge.service.providers.select_providers` (TensorRT -> CUDA -> 
 whichever this onnxruntime offers).
 
 Graph contract (:mod:`prml2_edge.model_meta`): input ``onboard`` float32 (1, L, 9) raw SI;
-outputs ``z_mean``, ``z_var`` float32 (1, L - H, 5) before the physics guard.
+outputs ``z_mean``, ``z_var`` float32 (1, R, 5) before the physics guard, for the newest
+R = ``metadata.rows`` decoder steps (1 for a streaming export, L - H for a full one).
 """
 
 from __future__ import annotations
@@ -76,7 +77,8 @@ class OnnxModel:
         Provider short names in order of preference (``tensorrt``, ``cuda``, ``cpu``).
 
     After :meth:`step` returned ``SUCCESS``, :attr:`mean` and :attr:`var` hold the decoder
-    outputs (L - H, 5) float64 [z units], before the physics guard.
+    outputs (R, 5) float64 [z units] of the newest R = :attr:`output_rows` decoder steps (the last
+    row is the newest step), before the physics guard.
     """
 
     def __init__(self, path: str | Path, threads: int = 1, providers: Sequence[str] = ("cpu",),
@@ -110,11 +112,12 @@ class OnnxModel:
                              "(re-export with the guard outside)")
         self.window_len = int(self.metadata.L)
         self.decoder_len = int(self.metadata.L - self.metadata.H)
+        self.output_rows = self.metadata.rows
         self._check_io()
         self.input_name = self.metadata.input_name
         self.output_names = list(self.metadata.output_names)
-        self.mean = np.zeros((self.decoder_len, schema.NUM_STATES))
-        self.var = np.ones((self.decoder_len, schema.NUM_STATES))
+        self.mean = np.zeros((self.output_rows, schema.NUM_STATES))
+        self.var = np.ones((self.output_rows, schema.NUM_STATES))
         self.n_runs = 0
         self.n_invalid = 0
         self.n_errors = 0
@@ -159,14 +162,14 @@ class OnnxModel:
             if name not in outputs:
                 raise ModelError(f"{self.path}: graph lacks output {name!r} (has {sorted(outputs)})")
             oshape = outputs[name].shape
-            if len(oshape) != 3 or not (_dim_ok(oshape[1], self.decoder_len) and _dim_ok(oshape[2], schema.NUM_STATES)):
-                raise ModelError(f"{self.path}: output {name!r} has shape {oshape}, want (1, {self.decoder_len}, "
-                                 f"{schema.NUM_STATES})")
+            if len(oshape) != 3 or not (_dim_ok(oshape[1], self.output_rows) and _dim_ok(oshape[2], schema.NUM_STATES)):
+                raise ModelError(f"{self.path}: output {name!r} has shape {oshape}, want (1, {self.output_rows}, "
+                                 f"{schema.NUM_STATES}) as its metadata says")
 
     def describe(self) -> str:
         m = self.metadata
-        return (f"model {self.path.name}: preset {m.preset}, L={m.L}, H={m.H}, version {m.version}, "
-                f"providers {', '.join(self.providers)}")
+        return (f"model {self.path.name}: preset {m.preset}, L={m.L}, H={m.H}, {self.output_rows} output row(s), "
+                f"version {m.version}, providers {', '.join(self.providers)}")
 
     def step(self, window: np.ndarray) -> InferenceStatus:
         """Run one window (1, L, 9) float32 [SI]; never raises.
@@ -182,7 +185,7 @@ class OnnxModel:
             self.n_errors += 1
             self.last_error = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
             return InferenceStatus.ERROR
-        want = (1, self.decoder_len, schema.NUM_STATES)
+        want = (1, self.output_rows, schema.NUM_STATES)
         if mean.shape != want or var.shape != want:
             self.n_invalid += 1
             return InferenceStatus.INVALID_OUTPUT

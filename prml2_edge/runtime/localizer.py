@@ -36,9 +36,8 @@ class Model(Protocol):
     """What the localiser needs from a model (:class:`prml2_edge.runtime.inference.OnnxModel`)."""
 
     window_len: int
-    decoder_len: int
-    mean: np.ndarray  # (L - H, 5) after a successful step
-    var: np.ndarray  # (L - H, 5)
+    mean: np.ndarray  # (R, 5) after a successful step, the newest R decoder steps; the last row is used
+    var: np.ndarray  # (R, 5)
 
     def step(self, window: np.ndarray) -> InferenceStatus: ...
 
@@ -184,10 +183,10 @@ class StreamingLocalizer:
         self.a_max_mps2 = schema.accel_limit_mps2(self.config.mu)
         self.guard_stats = GuardStats()
         self.window = Window(model.window_len)
-        self.decoder_len = int(model.decoder_len)
-        self._z_mean = np.zeros((self.decoder_len, schema.NUM_STATES))
-        self._z_var = np.ones((self.decoder_len, schema.NUM_STATES))
-        self._fired = np.zeros(self.decoder_len, dtype=bool)
+        # the newest window's newest decoder output, guarded: the only one ever consumed (see _feed)
+        self._z_mean = np.zeros(schema.NUM_STATES)
+        self._z_var = np.ones(schema.NUM_STATES)
+        self._fired = False
         self.reset()
 
     def reset(self) -> None:
@@ -227,11 +226,8 @@ class StreamingLocalizer:
         else:
             # Only the newest decoder step is ever consumed (held until the next window, see _feed), so only
             # it is guarded and counted: the guard statistics are over used predictions.
-            used = slice(self.decoder_len - 1, self.decoder_len)
-            mean, var, fired = physics_guard(self.model.mean[used], self.model.var[used], self.a_max_mps2)
-            self._z_mean[used] = mean
-            self._z_var[used] = var
-            self._fired[used] = fired
+            mean, var, fired = physics_guard(self.model.mean[-1:], self.model.var[-1:], self.a_max_mps2)
+            self._z_mean, self._z_var, self._fired = mean[0], var[0], bool(fired[0])
             self.guard_stats.update(fired)
             self._output_ok = self.window.invalid_fraction <= self.config.max_invalid_fraction
         if self.latency is not None:
@@ -254,8 +250,7 @@ class StreamingLocalizer:
             # for step k - offset, is held; older decoder rows describe older steps and are never used.
             offset = self.window.count - self._inf_count
             if offset < self.config.stride:
-                j = self.decoder_len - 1
-                return inferred, self._z_mean[j], self._z_var[j], bool(self._fired[j])
+                return inferred, self._z_mean, self._z_var, self._fired
         return inferred, None, None, False
 
     def step(self, values: np.ndarray, valid: np.ndarray, t_s: float, gnss: GnssFix | None = None,

@@ -1,8 +1,11 @@
 """Export a trained checkpoint to ONNX for the edge runtime (contract: :mod:`prml2_edge.model_meta`).
 
 The graph takes ``onboard`` float32 (1, L, 9) raw SI (normalisation is inside the graph) and
-returns ``z_mean`` and ``z_var`` float32 (1, L - H, 5), before the physics guard (the guard runs
-in NumPy at runtime so the friction coefficient can be set there). The
+returns ``z_mean`` and ``z_var`` float32 (1, R, 5) for the newest R decoder steps (``rows``; all
+L - H when None), before the physics guard (the guard runs in NumPy at runtime so the friction
+coefficient can be set there). The streaming runtime consumes only the newest step, so a graph
+with R = 1 (the ``prml2 export`` default) gives it the same numbers while its last decoder layer
+computes one query row instead of L - H. The
 :class:`~prml2_edge.model_meta.ModelMetadata` JSON is stored under the ``metadata_props`` key
 ``"prml2"``. The legacy TorchScript-based exporter (``dynamo=False``) is used: it gives a clean,
 fixed-shape graph at opset 17 that onnxruntime runs with the same numbers as torch (checked by
@@ -72,18 +75,49 @@ def metadata_for(model: Prml2Model, ckpt: dict[str, Any], *, quantized: bool = F
     )
 
 
-def export_onnx(model: Prml2Model, metadata: ModelMetadata, out_path: str | Path, *, opset: int = OPSET) -> Path:
-    """Write ``model`` as a fixed-shape ONNX graph with ``metadata`` embedded; returns the path."""
+class _NewestRows(torch.nn.Module):
+    """``model`` returning its newest ``rows`` decoder steps: computed only for those rows when the model
+    can (``forward(onboard, rows=...)``, the PRML2 transformer), else sliced from the full output."""
+
+    def __init__(self, model: torch.nn.Module, rows: int) -> None:
+        super().__init__()
+        self.model = model
+        self.rows = int(rows)
+        self.native = isinstance(model, Prml2Model)
+
+    def forward(self, onboard: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.native:
+            return self.model(onboard, rows=self.rows)
+        mean, var = self.model(onboard)
+        return mean[:, -self.rows:], var[:, -self.rows:]
+
+
+def newest_rows(model: torch.nn.Module, rows: int | None) -> torch.nn.Module:
+    """``model`` itself (rows None: every decoder step) or its :class:`_NewestRows` wrapper."""
+    return model if rows is None else _NewestRows(model, rows).eval()
+
+
+def export_onnx(model: Prml2Model, metadata: ModelMetadata, out_path: str | Path, *, opset: int = OPSET,
+                rows: int | None = None) -> Path:
+    """Write ``model`` as a fixed-shape ONNX graph with ``metadata`` embedded; returns the path.
+
+    ``rows``: the graph returns the newest ``rows`` decoder steps (None: all L - H); recorded in the
+    metadata's ``output_rows``.
+    """
     import onnx
 
     out_path = Path(out_path)
     model = model.eval()
+    decoder_len = model.cfg.window_len - model.cfg.encoder_len
+    if rows is not None and not 1 <= int(rows) <= decoder_len:
+        raise ModelError(f"rows must be in [1, L - H = {decoder_len}], got {rows}")
+    metadata = ModelMetadata(**{**asdict(metadata), "output_rows": None if rows is None else int(rows)})
     dummy = torch.zeros(1, model.cfg.window_len, schema.NUM_SIGNALS, dtype=torch.float32)
     buf = io.BytesIO()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # TracerWarnings and the legacy-exporter deprecation notice
         torch.onnx.export(
-            model,
+            newest_rows(model, rows),
             (dummy,),
             buf,
             input_names=[INPUT_NAME],
@@ -98,6 +132,53 @@ def export_onnx(model: Prml2Model, metadata: ModelMetadata, out_path: str | Path
     out_path.parent.mkdir(parents=True, exist_ok=True)
     onnx.save(proto, str(out_path))
     return out_path
+
+
+def model_from_onnx(path: str | Path) -> tuple[Prml2Model, dict, dict]:
+    """Rebuild the torch PRML2 model of an exported ONNX file: ``(model, checkpoint-like dict, info)``.
+
+    The config and statistics come from the metadata; the weights from the graph's initialisers:
+    by parameter name, and for each ``Linear`` the exporter turned into ``/<module path>/MatMul``
+    with a constant (transposed) weight, from that node. Raises :class:`ModelError` unless every
+    parameter is found, so a re-export (say to a newest-row streaming graph) computes the same
+    numbers as the original. ``info``: ``{"weights_loaded", "weights_total"}``.
+    """
+    import onnx
+    from onnx import numpy_helper
+
+    from prml2_edge.training.presets import model_config_from_dict
+
+    proto = onnx.load(str(path))
+    props = {p.key: p.value for p in proto.metadata_props}
+    if METADATA_KEY not in props:
+        raise ModelError(f"{path}: no PRML2 metadata (key {METADATA_KEY!r}); not a 'prml2 export' model")
+    meta = ModelMetadata.from_json(props[METADATA_KEY], str(path))
+    try:
+        cfg = model_config_from_dict({k: v for k, v in meta.config.items() if k not in ("z_mean", "z_std")})
+    except Exception as exc:  # noqa: BLE001 - a baseline or foreign config
+        raise ModelError(f"{path}: not a PRML2 transformer model ({exc})") from exc
+    model = Prml2Model(cfg, meta.norm_mean, meta.norm_std, meta.config.get("z_mean", [0.0] * schema.NUM_STATES),
+                       meta.config.get("z_std", [1.0] * schema.NUM_STATES))
+    inits = {t.name: numpy_helper.to_array(t) for t in proto.graph.initializer}
+    for node in proto.graph.node:  # Linear -> MatMul(x, W^T) (+ Add bias) under the module's path
+        if node.op_type == "MatMul" and node.name.endswith("/MatMul") and node.input[1] in inits:
+            module = node.name[1 : -len("/MatMul")].replace("/", ".")
+            inits.setdefault(f"{module}.weight", inits[node.input[1]].T)
+    state = model.state_dict()
+    missing = []
+    with torch.no_grad():
+        for name, tensor in state.items():
+            arr = inits.get(name)
+            if arr is not None and tuple(arr.shape) == tuple(tensor.shape):
+                tensor.copy_(torch.as_tensor(np.array(arr)))
+            elif name not in ("z_mean", "z_std"):  # those two come from the metadata
+                missing.append(name)
+    if missing:
+        raise ModelError(f"{path}: cannot recover {len(missing)} weight tensor(s) from the graph "
+                         f"(first {missing[0]!r}); export from the checkpoint instead")
+    model.load_state_dict(state)
+    ckpt = {"preset": meta.preset, "dataset_fingerprint": meta.dataset_fingerprint, "training": meta.training}
+    return model.eval(), ckpt, {"weights_loaded": len(state) - len(missing), "weights_total": len(state)}
 
 
 def set_metadata(proto, metadata: ModelMetadata) -> None:
@@ -143,11 +224,14 @@ def run_ort(session, windows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def parity(model: Prml2Model, onnx_path: str | Path, windows: np.ndarray) -> dict[str, float]:
-    """Max abs difference between torch and onnxruntime over ``windows`` (n, L, 9): ``{"mean", "var", "n"}``."""
+    """Max abs difference between torch (every decoder step) and onnxruntime over ``windows`` (n, L, 9), on
+    the rows the graph returns: ``{"mean", "var", "n"}``."""
     session = ort_session(onnx_path)
     o_mean, o_var = run_ort(session, windows)
     with torch.no_grad():
         t_mean, t_var = model.eval()(torch.as_tensor(np.asarray(windows, dtype=np.float32)))
+    rows = o_mean.shape[1]
+    t_mean, t_var = t_mean[:, -rows:], t_var[:, -rows:]
     return {"mean": float(np.max(np.abs(o_mean - t_mean.numpy()))),
             "var": float(np.max(np.abs(o_var - t_var.numpy()))),
             "n": int(len(windows))}
@@ -169,7 +253,9 @@ def quantize_int8(fp32_path: str | Path, int8_path: str | Path, metadata: ModelM
     from onnxruntime.quantization import QuantType, quantize_dynamic
 
     int8_path = Path(int8_path)
-    exclude = [n.name for n in onnx.load(str(fp32_path)).graph.node if n.name.startswith(INT8_EXCLUDE_PREFIXES)]
+    # substring match: in a newest-rows export the module names sit under "/model/"
+    exclude = [n.name for n in onnx.load(str(fp32_path)).graph.node
+               if any(prefix in n.name for prefix in INT8_EXCLUDE_PREFIXES)]
     root = logging.getLogger()
     level = root.level
     root.setLevel(logging.ERROR)  # onnxruntime.quantization logs every tensor it skips at INFO/WARNING
@@ -187,16 +273,18 @@ def quantize_int8(fp32_path: str | Path, int8_path: str | Path, metadata: ModelM
 
 
 def compare_int8(fp32_path: str | Path, int8_path: str | Path, windows: np.ndarray, z_gt: np.ndarray) -> dict:
-    """z RMSE per state of the fp32 and int8 graphs on ``windows`` (n, L, 9) against ``z_gt`` (n, L-H, 5).
+    """z RMSE per state of the fp32 and int8 graphs on ``windows`` (n, L, 9) against ``z_gt`` (n, L-H, 5),
+    over the decoder steps the graphs return (the newest ones).
 
     Returns ``{"fp32": {state: rmse}, "int8": {...}, "max_abs_mean_diff": float, "n_windows": n}``
     (before the guard, SI units).
     """
     f_mean, _ = run_ort(ort_session(fp32_path), windows)
     q_mean, _ = run_ort(ort_session(int8_path), windows)
+    z_gt = np.asarray(z_gt, dtype=np.float64)[:, -f_mean.shape[1]:]
 
     def rmse(mean: np.ndarray) -> dict[str, float]:
-        err = mean.astype(np.float64) - np.asarray(z_gt, dtype=np.float64)
+        err = mean.astype(np.float64) - z_gt
         return {name: float(np.sqrt(np.mean(err[..., i] ** 2))) for i, name in enumerate(schema.STATE_NAMES)}
 
     return {"fp32": rmse(f_mean), "int8": rmse(q_mean), "max_abs_mean_diff": float(np.max(np.abs(f_mean - q_mean))),

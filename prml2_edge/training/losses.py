@@ -19,7 +19,8 @@ from prml2_edge import schema
 from prml2_edge.schema import EkfState
 
 
-def nll_loss(mean: torch.Tensor, var: torch.Tensor, z_gt: torch.Tensor, z_std: torch.Tensor) -> torch.Tensor:
+def nll_loss(mean: torch.Tensor, var: torch.Tensor, z_gt: torch.Tensor, z_std: torch.Tensor,
+             reduction: str = "sum") -> torch.Tensor:
     """Gaussian NLL of Eq. nll_loss per window, without the constant.
 
     Parameters
@@ -30,15 +31,24 @@ def nll_loss(mean: torch.Tensor, var: torch.Tensor, z_gt: torch.Tensor, z_std: t
         (B, T, 5) ground-truth z [SI].
     z_std
         (5,) z normalisation std [SI].
+    reduction
+        ``"sum"`` (the paper's Eq. nll_loss) or ``"mean"`` over the T x 5 terms: the same gradient
+        direction, 1 / (5 T) the size, so that next to it the position term of fine-tuning
+        (bounded by beta) is not swamped (see :class:`~prml2_edge.training.presets.TrainConfig`).
 
     Returns
     -------
     torch.Tensor
-        (B,) sum over steps and components of r^2 / v + log v, r and v in normalised units.
+        (B,) sum (or mean) over steps and components of r^2 / v + log v, r and v in normalised units.
     """
     r = (z_gt - mean) / z_std  # (B, T, 5)
     v = var / (z_std * z_std)  # (B, T, 5)
-    return (r * r / v + torch.log(v)).sum(dim=(1, 2))
+    terms = r * r / v + torch.log(v)
+    if reduction == "sum":
+        return terms.sum(dim=(1, 2))
+    if reduction == "mean":
+        return terms.mean(dim=(1, 2))
+    raise ValueError(f"reduction must be 'sum' or 'mean', got {reduction!r}")
 
 
 def position_loss(d: torch.Tensor, d_gt: torch.Tensor, beta: float = 8.0) -> torch.Tensor:

@@ -120,9 +120,16 @@ class DecoderLayer(nn.Module):
         self.ff = FeedForward(cfg.d_model, cfg.d_ff, cfg.dropout)
         self.drop = nn.Dropout(cfg.dropout)
 
-    def forward(self, x: torch.Tensor, memory: torch.Tensor) -> torch.Tensor:  # (B, L-H, d), (B, H, d)
+    def forward(self, x: torch.Tensor, memory: torch.Tensor, rows: int | None = None) -> torch.Tensor:
+        """``x`` (B, L-H, d), ``memory`` (B, H, d) -> (B, L-H, d); with ``rows`` only the last ``rows``
+        query rows are computed, (B, rows, d): the same numbers as the full layer's last rows (the self
+        attention still reads keys and values from every row), for a fraction of the work."""
         h = self.norm1(x)
-        x = x + self.drop(self.self_attn(h, h))
+        if rows is not None:
+            x, q = x[:, -rows:], h[:, -rows:]
+        else:
+            q = h
+        x = x + self.drop(self.self_attn(q, h))
         x = x + self.drop(self.cross_attn(self.norm2(x), memory))
         return x + self.drop(self.ff(self.norm3(x)))
 
@@ -192,9 +199,12 @@ class Prml2Model(nn.Module):
         self.skip.weight.copy_(torch.as_tensor(coef[:-1].T, dtype=torch.float32))
         self.skip.bias.copy_(torch.as_tensor(coef[-1], dtype=torch.float32))
 
-    def forward_normalised(self, onboard: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Mean and variance in normalised z units: each (B, L - H, 5)."""
+    def forward_normalised(self, onboard: torch.Tensor, rows: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean and variance in normalised z units: each (B, L - H, 5), or (B, rows, 5) for the newest
+        ``rows`` decoder steps only (the last decoder layer then computes just those query rows)."""
         cfg = self.cfg
+        if rows is not None and not 1 <= rows <= cfg.decoder_len:
+            raise ModelError(f"rows must be in [1, {cfg.decoder_len}], got {rows}")
         x = (onboard - self.in_mean) / self.in_std  # (B, L, 9)
         h = self.input_proj(x) + self.pos_embedding  # (B, L, d)
         enc = h[:, : cfg.encoder_len]  # (B, H, d)
@@ -202,16 +212,19 @@ class Prml2Model(nn.Module):
         for layer in self.encoder:
             enc = layer(enc)
         memory = self.enc_norm(enc)
-        for layer in self.decoder:
-            dec = layer(dec, memory)
-        out = self.head(self.dec_norm(dec))  # (B, L-H, 10)
-        mean_n = out[..., : cfg.num_states] + self.skip(x[:, cfg.encoder_len :])  # (B, L-H, 5)
+        last = len(self.decoder) - 1
+        for i, layer in enumerate(self.decoder):
+            dec = layer(dec, memory, rows if i == last else None)
+        out = self.head(self.dec_norm(dec))  # (B, L-H or rows, 10)
+        n = dec.shape[1]
+        mean_n = out[..., : cfg.num_states] + self.skip(x[:, cfg.window_len - n :])  # (B, n, 5)
         var_n = F.softplus(out[..., cfg.num_states :]) + cfg.var_floor
         return mean_n, var_n
 
-    def forward(self, onboard: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``onboard`` (B, L, 9) raw SI -> (mean (B, L-H, 5) SI, var (B, L-H, 5) SI^2)."""
-        mean_n, var_n = self.forward_normalised(onboard)
+    def forward(self, onboard: torch.Tensor, rows: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``onboard`` (B, L, 9) raw SI -> (mean (B, L-H, 5) SI, var (B, L-H, 5) SI^2); with ``rows``,
+        the newest ``rows`` decoder steps only, (B, rows, 5) each."""
+        mean_n, var_n = self.forward_normalised(onboard, rows)
         return mean_n * self.z_std + self.z_mean, var_n * (self.z_std * self.z_std)
 
     def num_parameters(self) -> int:

@@ -74,6 +74,9 @@ class TrainConfig:
     pretrain_frac: float = 0.7
     lr_schedule: str = "cosine"  # "cosine": one schedule over all epochs; "cosine_restart": one per stage
     beta: float = 8.0  # position-loss scale of Eq. total_loss_single
+    # "sum": the paper's NLL summed over the (L - H) x 5 terms of a window (about -2800 per window, next to
+    # which the position term, bounded by beta, barely steers fine-tuning); "mean": averaged over them.
+    nll_reduction: str = "sum"
     mu: float = 1.0  # friction coefficient the physics guard uses in training (dry data)
     window_stride: int = 10  # samples between training windows
     val_stride: int = 50  # samples between validation windows (per-epoch loss)
@@ -102,6 +105,8 @@ class TrainConfig:
             raise ConfigError(f"pretrain fraction must be in (0, 1], got {self.pretrain_frac}")
         if not (self.mu > 0):
             raise ConfigError(f"mu must be > 0, got {self.mu}")
+        if self.nll_reduction not in ("sum", "mean"):
+            raise ConfigError(f"nll_reduction must be 'sum' or 'mean', got {self.nll_reduction!r}")
         if self.lr_schedule not in ("cosine", "cosine_restart"):
             raise ConfigError(f"lr_schedule must be 'cosine' or 'cosine_restart', got {self.lr_schedule!r}")
 

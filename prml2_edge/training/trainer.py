@@ -165,7 +165,7 @@ def _steps_per_epoch(n_windows: int, cfg: TrainConfig, world_size: int) -> int:
 
 def evaluate_windows(model: Prml2Model, guard: PhysicsGuard, windows: WindowSource, *, batch_size: int,
                      with_position: bool, filt: _Filter | None, beta: float = 8.0,
-                     info: ddp.DistInfo | None = None) -> dict:
+                     info: ddp.DistInfo | None = None, nll_reduction: str = "sum") -> dict:
     """Validation metrics over all windows of ``windows`` (sharded over ranks, summed).
 
     Returns ``{"val_nll", "val_pos" (or NaN), "val_rmse_<state>", "val_guard_fire_rate", "val_windows"}``:
@@ -186,7 +186,7 @@ def evaluate_windows(model: Prml2Model, guard: PhysicsGuard, windows: WindowSour
             onboard, z, d_gt = _to_tensors(windows.get(idx), H)
             mean, var = guard(*model(onboard))
             z_dec = z[:, H:]
-            acc[0] += nll_loss(mean, var, z_dec, model.z_std).double().sum()
+            acc[0] += nll_loss(mean, var, z_dec, model.z_std, nll_reduction).double().sum()
             if with_position and filt is not None:
                 d = filt.positions(mean, var, z[:, H])
                 acc[1] += position_loss(d, d_gt, beta).sum()
@@ -336,7 +336,7 @@ def fit(
                 group["lr"] = lr
             onboard, z, d_gt = _to_tensors(data.train.get(idx), H)
             mean, var = guard(*train_model(onboard))  # (b, L-H, 5) each
-            nll = nll_loss(mean, var, z[:, H:], model.z_std)  # (b,)
+            nll = nll_loss(mean, var, z[:, H:], model.z_std, train_cfg.nll_reduction)  # (b,)
             loss = nll.mean()
             pos = torch.zeros(())
             if stage == FINETUNE:
@@ -368,7 +368,8 @@ def fit(
         train_fire = ddp.all_reduce_sum(torch.tensor([guard.n_fired, guard.n_predictions], dtype=torch.float64), info)
         train_time = time.monotonic() - t_epoch
         val = evaluate_windows(model, guard, data.val, batch_size=max(per_rank_batch, 64),
-                               with_position=filt is not None, filt=filt, beta=train_cfg.beta, info=info)
+                               with_position=filt is not None, filt=filt, beta=train_cfg.beta, info=info,
+                               nll_reduction=train_cfg.nll_reduction)
         n_used = max(sums[3].item(), 1.0)
         record: dict[str, Any] = {
             "epoch": epoch + 1,
