@@ -114,6 +114,16 @@ def test_nll_matches_gaussian_formula(rng):
     torch.testing.assert_close(diff, torch.full((2,), -4 * 5 * math.log(9.0), dtype=torch.float64))
 
 
+def test_nll_mean_reduction_is_the_sum_over_the_terms(rng):
+    mean = torch.as_tensor(rng.normal(size=(2, 4, 5)))
+    var = torch.as_tensor(rng.uniform(0.1, 2, size=(2, 4, 5)))
+    z = torch.as_tensor(rng.normal(size=(2, 4, 5)))
+    std = torch.ones(5, dtype=torch.float64)
+    torch.testing.assert_close(nll_loss(mean, var, z, std, "mean") * 20, nll_loss(mean, var, z, std))
+    with pytest.raises(ValueError, match="reduction"):
+        nll_loss(mean, var, z, std, "max")
+
+
 def test_position_loss_is_bounded_by_beta():
     d = torch.zeros(1, 100, 2)
     assert position_loss(d, d, 8.0).item() == 0.0

@@ -188,3 +188,19 @@ def test_prml2_and_prml2_star_agree_until_the_switch(toy_data, tmp_path):
     assert star.history[0]["lr_end"] == full.history[0]["lr_end"]
     assert star.history[1]["stage"] == "pretrain" and full.history[1]["stage"] == "finetune"
     assert star.history[1]["val_nll"] != full.history[1]["val_nll"]
+
+
+def test_mean_nll_reduction_trains_and_is_recorded(toy_data, tmp_path):
+    from dataclasses import replace
+
+    from prml2_edge.errors import ConfigError
+
+    cfg = replace(CFG, nll_reduction="mean")
+    result = fit(toy_data, tmp_path / "run", preset="tiny", model_cfg=PRESET.model, train_cfg=cfg, progress=False)
+    records = [json.loads(line) for line in result.metrics_path.read_text().splitlines()]
+    assert all(np.isfinite(r["val_nll"]) for r in records)
+    # per term, not per window: a window's 100 x 5 terms average to a few units
+    assert all(abs(r["val_nll"]) < 50 for r in records)
+    assert torch.load(result.best_path, weights_only=True)["train_config"]["nll_reduction"] == "mean"
+    with pytest.raises(ConfigError, match="nll_reduction"):
+        replace(CFG, nll_reduction="median").validate()
