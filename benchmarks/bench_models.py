@@ -111,7 +111,7 @@ def prepare(name: str, out_dir: Path = MODEL_DIR, seed: int = 0, checkpoint: str
     return BenchModel(name, fp32, fp32_all, int8, int8_plain, model.eval(), asdict(model.cfg), trained, source)
 
 
-def test_windows(stride: int = 50, limit: int = 200):
+def test_windows(stride: int = 20, limit: int = 600):
     """(onboard (n, L, 9), z (n, L - H, 5)) test-split windows of the benchmark dataset, or None."""
     try:
         from prml2_edge.data.datasets import load_dataset
@@ -135,4 +135,5 @@ def paper_config() -> dict:
 if __name__ == "__main__":
     bm = prepare(sys.argv[1], seed=int(sys.argv[2]) if len(sys.argv) > 2 else 0,
                  checkpoint=sys.argv[3] if len(sys.argv) > 3 else None)
-    print(json.dumps({"fp32": str(bm.fp32), "int8": str(bm.int8), "source": bm.source, "trained": bm.trained}))
+    print(json.dumps({"fp32": str(bm.fp32), "fp32_all": str(bm.fp32_all), "int8": str(bm.int8), "source": bm.source,
+                      "trained": bm.trained}))

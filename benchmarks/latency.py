@@ -71,6 +71,11 @@ def run_model(bm: bench_models.BenchModel, threads: int, seconds: float, warmup_
         "onnx-int8": build_pipeline(open_session_model(bm.int8, threads=threads), replay.initial_pose),
         "torch-fp32": torch_pipeline(bm.torch_model, replay.initial_pose),
     }
+    if threads > 1:  # the runtime's [model] spinning = true: worker threads busy-wait instead of sleeping
+        pipes["onnxspin-fp32"] = build_pipeline(open_session_model(bm.fp32, threads=threads, spinning=True),
+                                                replay.initial_pose)
+        pipes["onnxspin-int8"] = build_pipeline(open_session_model(bm.int8, threads=threads, spinning=True),
+                                                replay.initial_pose)
     if with_bf16:
         pipes["torch-bf16"] = torch_pipeline(bm.torch_model, replay.initial_pose, dtype=torch.bfloat16)
     warm, chunks = _split_frames(replay.frames, schema.WINDOW_LEN + warmup_steps, chunk_s)

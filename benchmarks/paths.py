@@ -16,8 +16,8 @@ DATASET = REPO / "data" / "bench"
 
 
 def prepared_paths(name: str, seed: int = 0, checkpoint: str | None = None) -> dict:
-    """``{"fp32", "int8", "source", "trained"}`` of benchmark model ``name`` (``bench_models.prepare``), run in a
-    child process so that the caller stays torch-free (its imports and RSS are then the edge runtime's)."""
+    """``{"fp32", "fp32_all", "int8", "source", "trained"}`` of benchmark model ``name`` (``bench_models.prepare``),
+    run in a child process so that the caller stays torch-free (its imports and RSS are then the edge runtime's)."""
     script = HERE / "bench_models.py"
     cmd = [sys.executable, str(script), name, str(seed)] + ([str(checkpoint)] if checkpoint else [])
     out = subprocess.run(cmd, check=True, capture_output=True, text=True)

@@ -19,7 +19,7 @@ def _load(name: str) -> dict | None:
 
 
 def _config_target(c: dict) -> float | None:
-    if c["runtime"] != "onnx":
+    if c["runtime"] not in tg.RUNTIME_CONFIGS:
         return None
     if c["model"] == "paper":
         return tg.PAPER_FP32_P99_MS if c["precision"] == "fp32" else tg.PAPER_REDUCED_P99_MS

@@ -32,6 +32,7 @@ def test_shipped_example_lists_every_option(repo_root):
     ({"model": {"threads": True}}, r"\[model\] threads: expected int"),
     ({"model": {"providers": "cpu"}}, r"\[model\] providers: expected a list"),
     ({"model": {"threads": 0}}, r"threads must be >= 1"),
+    ({"model": {"spinning": "yes"}}, r"\[model\] spinning: expected bool"),
     ({"model": {"sha256": "abc"}}, r"64 hex digits"),
     ({"signals": {"mu": -1}}, r"mu must be > 0"),
     ({"initial_pose": {"source": "magic"}}, r"source must be one of"),
@@ -62,3 +63,26 @@ def test_model_pinning(tmp_path):
     assert verify_pinned_model(model, None) == digest
     with pytest.raises(ModelError, match="does not match the pinned"):
         verify_pinned_model(model, "0" * 64)
+
+
+def test_spinning_reaches_the_onnxruntime_session(tmp_path):
+    """[model] spinning (and --spinning over it) turns onnxruntime's worker-thread spinning on."""
+    pytest.importorskip("onnx")
+    import argparse
+
+    from runtime_models import make_kinematic_model
+
+    from prml2_edge.runtime.app import build_pipeline, config_from_args
+    from prml2_edge.runtime.cli_args import add_pipeline_arguments
+
+    model = make_kinematic_model(tmp_path / "k.onnx")
+    cfg = config_from_dict({"model": {"path": str(model), "threads": 2, "spinning": True},
+                            "initial_pose": {"source": "config"}}, "cfg.toml")
+    pipe = build_pipeline(cfg)
+    opts = pipe.model.session.get_session_options()
+    assert pipe.model.spinning and opts.get_session_config_entry("session.intra_op.allow_spinning") == "1"
+    parser = argparse.ArgumentParser()
+    add_pipeline_arguments(parser)
+    args = parser.parse_args(["--model", str(model), "--spinning", "--initial-pose", "0,0,0"])
+    assert config_from_args(args).model.spinning is True
+    assert config_from_args(parser.parse_args([])).model.spinning is False

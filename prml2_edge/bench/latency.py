@@ -61,17 +61,11 @@ class StepSamples:
 def open_session_model(path: str | Path, threads: int = 1, spinning: bool | None = None,
                        providers: Sequence[str] = ("cpu",)):
     """The runtime's :class:`OnnxModel` for ``path`` (``providers`` as the runtime takes them: ``tensorrt``,
-    ``cuda``, ``cpu``); ``spinning`` True re-creates its CPU session with onnxruntime's intra-op thread
-    spinning on (the runtime default is off), for comparison."""
-    from prml2_edge.runtime.inference import OnnxModel, session_options
+    ``cuda``, ``cpu``); ``spinning`` True turns onnxruntime's worker-thread spinning on, as the runtime's
+    ``[model] spinning`` option does (default off)."""
+    from prml2_edge.runtime.inference import OnnxModel
 
-    model = OnnxModel(path, threads=threads, providers=providers)
-    if spinning and model.providers == ["CPUExecutionProvider"]:
-        import onnxruntime as ort
-
-        model.session = ort.InferenceSession(str(model.path), sess_options=session_options(threads, spinning=True),
-                                             providers=model.providers)
-    return model
+    return OnnxModel(path, threads=threads, providers=providers, spinning=bool(spinning))
 
 
 def build_pipeline(model, initial_pose: InitialPose, signal_map: str = "prml2_onboard") -> Pipeline:

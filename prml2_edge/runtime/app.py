@@ -40,7 +40,8 @@ def config_from_args(args: argparse.Namespace) -> RuntimeConfig:
         cfg,
         can=can_section,
         signals={"map": args.map, "dbc": args.dbc, "mu": args.mu, "stale_periods": args.stale_periods},
-        model={"path": args.model, "threads": args.threads, "stride": args.stride, "providers": providers},
+        model={"path": args.model, "threads": args.threads, "stride": args.stride, "providers": providers,
+               "spinning": True if getattr(args, "spinning", False) else None},
         initial_pose=pose,
         sinks={"jsonl": args.jsonl, "csv": args.csv, "tum": args.tum,
                "status_interval_s": getattr(args, "status_interval", None)},
@@ -81,7 +82,8 @@ def build_pipeline(cfg: RuntimeConfig, extra_sinks: list | None = None) -> Pipel
     sinks = file_sinks(cfg) + list(extra_sinks or [])
     try:
         return Pipeline.build(map=cfg.signals.map, dbc=cfg.signals.dbc, model=model_path, threads=cfg.model.threads,
-                              providers=cfg.model.providers, stride=cfg.model.stride, mu=cfg.signals.mu,
+                              spinning=cfg.model.spinning, providers=cfg.model.providers, stride=cfg.model.stride,
+                              mu=cfg.signals.mu,
                               stale_periods=cfg.signals.stale_periods, initial_pose=initial_pose, sinks=sinks,
                               trt_cache_dir=cfg.model.trt_cache_dir, trt_fp16=cfg.model.trt_fp16)
     except BaseException:

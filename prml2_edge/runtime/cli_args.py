@@ -15,6 +15,9 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--model", metavar="PATH", help="ONNX model (default: the shipped model)")
     g.add_argument("--mu", type=float, help="road friction for the physics guard (default 1.0; <= 0.5 low-mu)")
     g.add_argument("--threads", type=int, help="ONNX Runtime intra-op threads (default 1)")
+    g.add_argument("--spinning", action="store_true",
+                   help="with --threads >= 2: ONNX Runtime worker threads busy-wait between parallel sections "
+                        "instead of sleeping (tighter p99 latency, more CPU)")
     g.add_argument("--stride", type=int, help="a new model window every N 50 Hz steps (default 1)")
     g.add_argument("--providers", metavar="LIST",
                    help="execution providers in order, comma separated (default tensorrt,cuda,cpu)")

@@ -1,8 +1,9 @@
 """ONNX Runtime session for a PRML2 model: load, check its metadata, run one window.
 
 The session is configured for a small, predictable edge footprint: ``intra_op_num_threads``
-from the config (default 1), one inter-op thread, thread spinning off (an idle spinning
-thread would steal the CPU the CAN loop needs), all graph optimisations. Providers come
+from the config (default 1), one inter-op thread, thread spinning off unless asked for (an idle
+spinning thread would steal the CPU the CAN loop needs; with 2+ threads spinning tightens the
+tail latency of a large model), all graph optimisations. Providers come
 from :func:`prml2_edge.service.providers.select_providers` (TensorRT -> CUDA -> CPU,
 whichever this onnxruntime offers).
 
@@ -73,6 +74,8 @@ class OnnxModel:
         ONNX file.
     threads:
         Intra-op threads (CPU provider).
+    spinning:
+        onnxruntime's worker threads busy-wait between parallel sections (``threads`` >= 2).
     providers:
         Provider short names in order of preference (``tensorrt``, ``cuda``, ``cpu``).
 
@@ -82,7 +85,7 @@ class OnnxModel:
     """
 
     def __init__(self, path: str | Path, threads: int = 1, providers: Sequence[str] = ("cpu",),
-                 trt_cache_dir: str = "~/.cache/prml2/trt", trt_fp16: bool = False) -> None:
+                 trt_cache_dir: str = "~/.cache/prml2/trt", trt_fp16: bool = False, spinning: bool = False) -> None:
         import onnxruntime as ort
 
         from prml2_edge.service.providers import select_providers
@@ -92,7 +95,8 @@ class OnnxModel:
             raise ModelError(f"{self.path}: model file not found")
         if threads < 1:
             raise ModelError(f"threads must be >= 1, got {threads}")
-        opts = session_options(threads)
+        opts = session_options(threads, spinning=spinning)
+        self.spinning = bool(spinning)
         choice = select_providers(providers, trt_cache_dir=trt_cache_dir, trt_fp16=trt_fp16)
         self.provider_choice = choice
         try:

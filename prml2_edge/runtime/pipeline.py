@@ -119,6 +119,7 @@ class Pipeline:
     @classmethod
     def build(cls, map: str | Path = "prml2_onboard", dbc: str | Path | None = None,
               model: str | Path | OnnxModel | None = None, threads: int = 1, providers: Sequence[str] = ("cpu",),
+              spinning: bool = False,
               stride: int = 1, mu: float = 1.0, stale_periods: float = 3.0,
               initial_pose: InitialPose | None = None, sinks: Sequence = (),
               localizer_config: LocalizerConfig | None = None, trt_cache_dir: str = "~/.cache/prml2/trt",
@@ -134,7 +135,8 @@ class Pipeline:
                               "cannot come from the bus: give --initial-pose X,Y,HEADING_DEG or --initial-pose-file")
         if not isinstance(model, OnnxModel):
             model = OnnxModel(model if model is not None else default_model_path(), threads=threads,
-                              providers=providers, trt_cache_dir=trt_cache_dir, trt_fp16=trt_fp16)
+                              providers=providers, trt_cache_dir=trt_cache_dir, trt_fp16=trt_fp16,
+                              spinning=spinning)
         cfg = localizer_config or LocalizerConfig(stride=stride, mu=mu)
         stats = FrameStats()
         latency = LatencyRecorder()
