@@ -159,10 +159,14 @@ def model_from_onnx(path: str | Path) -> tuple[Prml2Model, dict, dict]:
         raise ModelError(f"{path}: not a PRML2 transformer model ({exc})") from exc
     model = Prml2Model(cfg, meta.norm_mean, meta.norm_std, meta.config.get("z_mean", [0.0] * schema.NUM_STATES),
                        meta.config.get("z_std", [1.0] * schema.NUM_STATES))
+    def unwrapped(name: str) -> str:  # a newest-rows export holds the model as the submodule "model"
+        return name[len("model."):] if name.startswith("model.") else name
+
     inits = {t.name: numpy_helper.to_array(t) for t in proto.graph.initializer}
+    inits.update({unwrapped(k): v for k, v in list(inits.items())})
     for node in proto.graph.node:  # Linear -> MatMul(x, W^T) (+ Add bias) under the module's path
         if node.op_type == "MatMul" and node.name.endswith("/MatMul") and node.input[1] in inits:
-            module = node.name[1 : -len("/MatMul")].replace("/", ".")
+            module = unwrapped(node.name[1 : -len("/MatMul")].replace("/", "."))
             inits.setdefault(f"{module}.weight", inits[node.input[1]].T)
     state = model.state_dict()
     missing = []
