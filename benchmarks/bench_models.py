@@ -59,12 +59,6 @@ def _dataset_stats(dataset_root: Path):
     return ds.norm_mean, ds.norm_std, z_mean, z_std, np.concatenate([d.onboard for d in train]), z_rows
 
 
-def _torch_from_onnx(path: Path) -> tuple[Prml2Model, dict]:
-    """A torch model with the ONNX model's config and weights (:func:`model_from_onnx`)."""
-    model, _, info = model_from_onnx(path)
-    return model, info
-
-
 def prepare(name: str, out_dir: Path = MODEL_DIR, seed: int = 0, checkpoint: str | Path | None = None) -> BenchModel:
     """Export (or find) model ``name`` and its int8 variants under ``out_dir``.
 

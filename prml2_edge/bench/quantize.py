@@ -31,9 +31,9 @@ def quantize_int8(src: str | Path, dst: str | Path, per_channel: bool = False, k
                   weights_only: bool = False) -> Path:
     """Write the dynamically int8-quantised ``src`` to ``dst`` (weights s8, per tensor or per output channel).
 
-    ``keep_fp32``: node-name prefixes left in fp32 (e.g. a model's tiny first and last layers, where
-    rounding costs accuracy and saves nothing); ``weights_only``: quantise only products with a
-    constant weight (not the attention's activation x activation products).
+    ``keep_fp32``: module-path parts of node names (``"/head/"``) left in fp32 (e.g. a model's tiny
+    first and last layers, where rounding costs accuracy and saves nothing); ``weights_only``:
+    quantise only products with a constant weight (not the attention's activation x activation products).
     """
     if not int8_available():
         raise ModelError("int8 quantisation needs the 'onnx' package (pip install 'prml2-edge[train]')")
@@ -50,7 +50,8 @@ def quantize_int8(src: str | Path, dst: str | Path, per_channel: bool = False, k
         exclude = []
         if keep_fp32:
             graph = onnx.load(str(src), load_external_data=False).graph
-            exclude = [n.name for n in graph.node if n.name.startswith(tuple(keep_fp32))]
+            # substring match: in a newest-rows (streaming) export the module names sit under "/model/"
+            exclude = [n.name for n in graph.node if any(prefix in n.name for prefix in keep_fp32)]
         quantize_dynamic(str(src), str(dst), weight_type=QuantType.QInt8, per_channel=per_channel,
                          nodes_to_exclude=exclude, extra_options={"MatMulConstBOnly": bool(weights_only)})
     finally:

@@ -246,34 +246,15 @@ def parity(model: Prml2Model, onnx_path: str | Path, windows: np.ndarray) -> dic
 INT8_EXCLUDE_PREFIXES = ("/input_proj/", "/head/", "/skip/")
 
 
-def quantize_int8(fp32_path: str | Path, int8_path: str | Path, metadata: ModelMetadata | None = None) -> Path:
+def quantize_int8(fp32_path: str | Path, int8_path: str | Path) -> Path:
     """Dynamic int8 quantisation (onnxruntime ``quantize_dynamic``) of the transformer's MatMul weights.
 
-    The layers in :data:`INT8_EXCLUDE_PREFIXES` stay float32; the metadata is carried over.
+    The layers in :data:`INT8_EXCLUDE_PREFIXES` stay float32; the metadata is carried over with
+    ``training["int8"] = True`` (:func:`prml2_edge.bench.quantize.quantize_int8` does the work).
     """
-    import logging
+    from prml2_edge.bench.quantize import quantize_int8 as quantize
 
-    import onnx
-    from onnxruntime.quantization import QuantType, quantize_dynamic
-
-    int8_path = Path(int8_path)
-    # substring match: in a newest-rows export the module names sit under "/model/"
-    exclude = [n.name for n in onnx.load(str(fp32_path)).graph.node
-               if any(prefix in n.name for prefix in INT8_EXCLUDE_PREFIXES)]
-    root = logging.getLogger()
-    level = root.level
-    root.setLevel(logging.ERROR)  # onnxruntime.quantization logs every tensor it skips at INFO/WARNING
-    try:
-        quantize_dynamic(str(fp32_path), str(int8_path), weight_type=QuantType.QInt8, nodes_to_exclude=exclude)
-    finally:
-        root.setLevel(level)
-    proto = onnx.load(str(int8_path))
-    meta = metadata or ModelMetadata.from_json(
-        next(p.value for p in onnx.load(str(fp32_path)).metadata_props if p.key == METADATA_KEY))
-    meta = ModelMetadata(**{**asdict(meta), "training": {**meta.training, "int8": True}})
-    set_metadata(proto, meta)
-    onnx.save(proto, str(int8_path))
-    return int8_path
+    return quantize(fp32_path, int8_path, keep_fp32=INT8_EXCLUDE_PREFIXES)
 
 
 def compare_int8(fp32_path: str | Path, int8_path: str | Path, windows: np.ndarray, z_gt: np.ndarray) -> dict:
