@@ -12,7 +12,7 @@ from prml2_edge import schema
 from prml2_edge.cli.main import main
 from prml2_edge.data.datasets import generate_dataset, load_dataset
 from prml2_edge.ekf.numpy_ekf import Ekf, default_initial_covariance
-from prml2_edge.evaluation.metrics import dr_summary, z_rmse
+from prml2_edge.evaluation.metrics import dr_summary, paired_comparison, z_rmse
 from prml2_edge.evaluation.protocol import ModelSpec, WindowResult, run_window, split_tasks
 from prml2_edge.evaluation.tum import read_tum, write_tum
 from prml2_edge.schema import EkfState
@@ -96,6 +96,30 @@ def test_metrics_on_known_errors():
     assert s["n_windows"] == 2 and s["rmse_std_m"] == 0.0 and s["drift_mean_pct"] == pytest.approx(3.0)
 
 
+def _result(key: str, rmse: float) -> WindowResult:
+    err = np.full(3, rmse)
+    return WindowResult("m", key, "test", np.zeros((3, 3)), err, np.zeros(3), 100.0, np.zeros((3, 5)))
+
+
+def test_paired_comparison_separates_a_real_gap_from_the_spread():
+    rng = np.random.default_rng(1)
+    base = rng.uniform(2.0, 20.0, 30)  # windows differ by far more than the models do
+    ref = [_result(f"w{i}", b) for i, b in enumerate(base)]
+    better = paired_comparison(ref, [_result(f"w{i}", b + 1.0) for i, b in enumerate(base)])
+    assert better["n_windows"] == 30 and better["reference_wins"] == 1.0
+    assert better["rmse_diff_mean_m"] == pytest.approx(1.0)
+    lo, hi = better["rmse_diff_ci95_m"]
+    assert lo == pytest.approx(1.0) and hi == pytest.approx(1.0)  # the same gap on every window
+    assert better["rmse_ratio"] < 1.0 and better["rmse_ratio_ci95"][1] < 1.0
+    noise = rng.normal(0.0, 3.0, 30)
+    tie = paired_comparison(ref, [_result(f"w{i}", b + n) for i, (b, n) in enumerate(zip(base, noise, strict=True))])
+    lo, hi = tie["rmse_diff_ci95_m"]
+    assert lo < tie["rmse_diff_mean_m"] < hi and lo < 0.0 < hi  # no real gap: the interval holds 0
+    # only windows both models ran are paired
+    assert paired_comparison(ref[:5], ref[3:])["n_windows"] == 2
+    assert paired_comparison(ref[:2], ref[2:4]) == {"n_windows": 0}
+
+
 def test_tum_round_trip(tmp_path):
     t = np.arange(5) * 0.02
     pose = np.column_stack([np.arange(5.0), -np.arange(5.0), np.linspace(-3.0, 3.0, 5)])
@@ -122,6 +146,9 @@ def test_cli_writes_tables_metrics_plots_and_tum(tiny, tmp_path, capsys):
     assert metrics["models"]["PRML2"]["snow"]["dead_reckoning_60s"]["n_windows"] == 1
     assert metrics["models"]["OSD-Baseline"]["test"]["z_rmse"]["v_y_mps"] is None  # a dash in Table 1
     assert [r["guard"] for r in metrics["ablation"]["rows"]] == [False, False, True]
+    pair = metrics["paired"]["test"]["OSD-Baseline"]
+    assert metrics["paired"]["reference"] == "PRML2" and pair["n_windows"] == 2
+    assert "Table 2b" in report
     assert metrics["tuning"]["OSD-Baseline"]["q_scale"] > 0
     for fig in metrics["figures"]:
         assert (out / fig).stat().st_size > 1000

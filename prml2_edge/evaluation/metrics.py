@@ -63,3 +63,36 @@ def z_errors(results: Sequence[WindowResult], tasks: Sequence[WindowTask]) -> np
     gt = {t.key: t.z_gt for t in tasks}
     err = np.concatenate([r.z - gt[r.task_key] for r in results], axis=0)
     return err[np.isfinite(err).any(axis=1)]
+
+
+def paired_comparison(reference: Sequence[WindowResult], other: Sequence[WindowResult], *, n_boot: int = 2000,
+                      seed: int = 0) -> dict[str, float | int | None]:
+    """How ``reference`` compares with ``other`` on the windows both ran (paired by window).
+
+    With a few dozen 60 s windows the spread over windows (± several metres) is as large as the gaps
+    between good models, so a difference of means alone does not say which model is better. Returns
+    the mean of ``rmse(other) - rmse(reference)`` per window [m] with a percentile-bootstrap 95 %
+    interval (``n_boot`` resamples of the windows, fixed ``seed``), the ratio of mean RMSEs
+    (reference / other) with its interval, and the share of windows where the reference has the lower
+    RMSE. A positive difference whose interval excludes 0: the reference is better beyond the
+    window-to-window spread.
+    """
+    ref = {r.task_key: r.rmse_m for r in reference}
+    oth = {r.task_key: r.rmse_m for r in other}
+    keys = sorted(set(ref) & set(oth))
+    if not keys:
+        return {"n_windows": 0}
+    a = np.array([ref[k] for k in keys])
+    b = np.array([oth[k] for k in keys])
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, len(keys), size=(n_boot, len(keys)))
+    diff_boot = (b[idx] - a[idx]).mean(axis=1)
+    ratio_boot = a[idx].mean(axis=1) / np.maximum(b[idx].mean(axis=1), 1e-12)
+    lo, hi = np.percentile(diff_boot, [2.5, 97.5])
+    rlo, rhi = np.percentile(ratio_boot, [2.5, 97.5])
+    return {
+        "n_windows": len(keys),
+        "rmse_diff_mean_m": float((b - a).mean()), "rmse_diff_ci95_m": [float(lo), float(hi)],
+        "rmse_ratio": float(a.mean() / max(b.mean(), 1e-12)), "rmse_ratio_ci95": [float(rlo), float(rhi)],
+        "reference_wins": float(np.mean(a < b)),
+    }

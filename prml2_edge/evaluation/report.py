@@ -62,6 +62,40 @@ def _paper_key(name: str) -> str | None:
     return None
 
 
+def _ci(d: dict, key: str, pct: bool = False) -> str:
+    v, (lo, hi) = d[key], d[key + "_ci95"]
+    if pct:
+        return f"{100 * v:.0f} % [{100 * lo:.0f}, {100 * hi:.0f}]"
+    return f"{v:.2f} [{lo:.2f}, {hi:.2f}]"
+
+
+def _paired_lines(metrics: dict) -> list[str]:
+    """Table 2b: the reference model against each other one, paired by window, with bootstrap intervals."""
+    paired = metrics.get("paired")
+    if not paired or not paired.get("test"):
+        return []
+    ref = paired["reference"]
+    snow = paired.get("snow", {})
+    lines = [f"## Table 2b: {ref} against each model, paired by window (95 % bootstrap intervals)", "",
+             f"| Model | dry: RMSE − {ref}'s [m] | dry: {ref} / model | dry: {ref} lower | "
+             f"snow: RMSE − {ref}'s [m] | snow: {ref} / model | snow: {ref} lower |",
+             "|---|---|---|---|---|---|---|"]
+    for name, d in paired["test"].items():
+        s = snow.get(name)
+        snow_cells = (f"{_diff(s)} | {_ci(s, 'rmse_ratio', pct=True)} | "
+                      f"{100 * s['reference_wins']:.0f} % of {s['n_windows']}") if s and s.get("n_windows") else " |  | "
+        lines.append(f"| {name} | {_diff(d)} | {_ci(d, 'rmse_ratio', pct=True)} | "
+                     f"{100 * d['reference_wins']:.0f} % of {d['n_windows']} | {snow_cells} |")
+    lines += ["", f"A positive difference whose interval excludes 0: {ref} is better than that model beyond the "
+              "window-to-window spread; an interval containing 0: the windows cannot tell them apart.", ""]
+    return lines
+
+
+def _diff(d: dict) -> str:
+    lo, hi = d["rmse_diff_ci95_m"]
+    return f"{d['rmse_diff_mean_m']:+.1f} [{lo:+.1f}, {hi:+.1f}]"
+
+
 def render_report(metrics: dict) -> str:
     """Markdown of Tables 1-3 with the paper's values beside ours."""
     models = metrics["models"]
@@ -102,6 +136,7 @@ def render_report(metrics: dict) -> str:
             f" | {s['n_windows']} | {paper_d} | {paper_s} |")
     lines += ["", f"Translational drift: final position error / distance travelled over 60 s (paper, PRML2: "
               f"{PAPER_DRIFT_PCT} %).", ""]
+    lines += _paired_lines(metrics)
     # Table 3
     abl = metrics.get("ablation")
     if abl:

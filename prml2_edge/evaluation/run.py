@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
-from prml2_edge.evaluation.metrics import dr_summary, z_rmse
+from prml2_edge.evaluation.metrics import dr_summary, paired_comparison, z_rmse
 from prml2_edge.evaluation.protocol import (
     DR_WINDOW_S,
     OSD_Q_SCALES,
@@ -132,6 +132,13 @@ def evaluate(data: str | Path, specs: Sequence[ModelSpec], out_dir: str | Path, 
             metrics["models"][s.name]["snow"] = snow_sum[s.name]
     if abl_rows:
         metrics["ablation"] = {"model": target.name, "rows": abl_rows}
+    if target is not None and len(tuned) > 1:  # is the reference better than each other model beyond the spread?
+        paired: dict = {"reference": target.name}
+        for split, res in (("test", test_res), ("snow", snow_res)):
+            if res.get(target.name):
+                paired[split] = {s.name: paired_comparison(res[target.name], res[s.name])
+                                 for s in tuned if s.name != target.name and res.get(s.name)}
+        metrics["paired"] = paired
 
     figures = []
     if plots:
