@@ -86,6 +86,7 @@ SIGNAL_NAMES: tuple[str, ...] = tuple(s.name for s in SIGNALS)
 SIGNAL_BY_NAME: dict[str, Signal] = {s.name: s for s in SIGNALS}
 NUM_SIGNALS = len(SIGNALS)  # m = 9
 WHEEL_SPEED_NAMES = SIGNAL_NAMES[5:9]
+WHEEL_SPEED_INDICES: tuple[int, ...] = tuple(SIGNAL_BY_NAME[n].index for n in WHEEL_SPEED_NAMES)  # fl, fr, rl, rr
 
 # ReV-StED column aliases: the public sample names the yaw rate ``yaw_rate``.
 REVSTED_ALIASES: dict[str, tuple[str, ...]] = {"Yawrate_obd": ("yaw_rate",)}

@@ -71,6 +71,23 @@ def test_forward_shapes_positive_variance_and_si_outputs(rng):
     assert torch.all(var_n >= TINY.var_floor)
 
 
+def test_wheel_features_are_axle_means_and_scaled_left_right_differences(rng):
+    assert TINY.wheel_diff_gain > 0  # the tests' models (and the edge preset) use them
+    model = _model().eval()
+    x = torch.as_tensor(rng.normal(size=(2, 7, 9)), dtype=torch.float32)
+    f = model.features(x)
+    fl, fr, rl, rr = (x[..., i] for i in schema.WHEEL_SPEED_INDICES)
+    g = TINY.wheel_diff_gain
+    torch.testing.assert_close(f[..., 5:9], torch.stack([(fl + fr) / 2, (rl + rr) / 2, g * (fr - fl), g * (rr - rl)], -1))
+    torch.testing.assert_close(f[..., :5], x[..., :5])  # the other signals pass through
+    swapped = x[..., [0, 1, 2, 3, 4, 6, 5, 8, 7]]  # mirror left and right: the differences change sign
+    torch.testing.assert_close(model.features(swapped)[..., 7:9], -f[..., 7:9])
+    plain = _model(cfg=with_overrides(TINY, {"wheel_diff_gain": 0.0}))
+    assert plain.features(x) is x  # gain 0: the paper's inputs, as models exported before the option
+    with pytest.raises(ConfigError, match="wheel_diff_gain"):
+        with_overrides(TINY, {"wheel_diff_gain": -1.0}).validate()
+
+
 def test_decoder_output_depends_on_encoder_context(rng):
     model = _model().eval()
     x = torch.as_tensor(rng.normal(size=(1, 250, 9)), dtype=torch.float32)

@@ -191,6 +191,7 @@ class Prml2Model(nn.Module):
         which the few hundred optimizer steps of a CPU budget would not reach from zero.
         """
         x = (np.asarray(onboard_rows, np.float64) - self.in_mean.double().numpy()) / self.in_std.double().numpy()
+        x = self.features(torch.as_tensor(x)).numpy()
         y = (np.asarray(z_rows, np.float64) - self.z_mean.double().numpy()) / self.z_std.double().numpy()
         ok = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(y), axis=1)
         x1 = np.concatenate([x[ok], np.ones((int(ok.sum()), 1))], axis=1)  # (N, 10)
@@ -199,13 +200,25 @@ class Prml2Model(nn.Module):
         self.skip.weight.copy_(torch.as_tensor(coef[:-1].T, dtype=torch.float32))
         self.skip.bias.copy_(torch.as_tensor(coef[-1], dtype=torch.float32))
 
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        """The model's input features from normalised signals ``x`` (..., 9): ``x`` itself, or with
+        ``cfg.wheel_diff_gain > 0`` the wheel channels replaced by [front mean, rear mean,
+        gain * (fr - fl), gain * (rr - rl)] (element-wise ops only, so int8 export leaves them in fp32)."""
+        g = self.cfg.wheel_diff_gain
+        if g <= 0:
+            return x
+        fl, fr, rl, rr = (x[..., i : i + 1] for i in schema.WHEEL_SPEED_INDICES)
+        first = schema.WHEEL_SPEED_INDICES[0]
+        return torch.cat([x[..., :first], 0.5 * (fl + fr), 0.5 * (rl + rr), g * (fr - fl), g * (rr - rl),
+                          x[..., first + 4 :]], dim=-1)
+
     def forward_normalised(self, onboard: torch.Tensor, rows: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean and variance in normalised z units: each (B, L - H, 5), or (B, rows, 5) for the newest
         ``rows`` decoder steps only (the last decoder layer then computes just those query rows)."""
         cfg = self.cfg
         if rows is not None and not 1 <= rows <= cfg.decoder_len:
             raise ModelError(f"rows must be in [1, {cfg.decoder_len}], got {rows}")
-        x = (onboard - self.in_mean) / self.in_std  # (B, L, 9)
+        x = self.features((onboard - self.in_mean) / self.in_std)  # (B, L, 9)
         h = self.input_proj(x) + self.pos_embedding  # (B, L, d)
         enc = h[:, : cfg.encoder_len]  # (B, H, d)
         dec = h[:, cfg.encoder_len :]  # (B, L-H, d)
