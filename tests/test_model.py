@@ -78,7 +78,8 @@ def test_wheel_features_are_axle_means_and_scaled_left_right_differences(rng):
     f = model.features(x)
     fl, fr, rl, rr = (x[..., i] for i in schema.WHEEL_SPEED_INDICES)
     g = TINY.wheel_diff_gain
-    torch.testing.assert_close(f[..., 5:9], torch.stack([(fl + fr) / 2, (rl + rr) / 2, g * (fr - fl), g * (rr - rl)], -1))
+    expected = torch.stack([(fl + fr) / 2, (rl + rr) / 2, g * (fr - fl), g * (rr - rl)], -1)
+    torch.testing.assert_close(f[..., 5:9], expected)
     torch.testing.assert_close(f[..., :5], x[..., :5])  # the other signals pass through
     swapped = x[..., [0, 1, 2, 3, 4, 6, 5, 8, 7]]  # mirror left and right: the differences change sign
     torch.testing.assert_close(model.features(swapped)[..., 7:9], -f[..., 7:9])

@@ -82,8 +82,10 @@ def _paired_lines(metrics: dict) -> list[str]:
              "|---|---|---|---|---|---|---|"]
     for name, d in paired["test"].items():
         s = snow.get(name)
-        snow_cells = (f"{_diff(s)} | {_ci(s, 'rmse_ratio', pct=True)} | "
-                      f"{100 * s['reference_wins']:.0f} % of {s['n_windows']}") if s and s.get("n_windows") else " |  | "
+        snow_cells = " |  | "
+        if s and s.get("n_windows"):
+            snow_cells = (f"{_diff(s)} | {_ci(s, 'rmse_ratio', pct=True)} | "
+                          f"{100 * s['reference_wins']:.0f} % of {s['n_windows']}")
         lines.append(f"| {name} | {_diff(d)} | {_ci(d, 'rmse_ratio', pct=True)} | "
                      f"{100 * d['reference_wins']:.0f} % of {d['n_windows']} | {snow_cells} |")
     lines += ["", f"A positive difference whose interval excludes 0: {ref} is better than that model beyond the "
