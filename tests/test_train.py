@@ -204,3 +204,41 @@ def test_mean_nll_reduction_trains_and_is_recorded(toy_data, tmp_path):
     assert torch.load(result.best_path, weights_only=True)["train_config"]["nll_reduction"] == "mean"
     with pytest.raises(ConfigError, match="nll_reduction"):
         replace(CFG, nll_reduction="median").validate()
+
+
+def test_segments_tile_the_samples_with_the_windows_that_end_at_them():
+    drives, ws = toy_windows(n_drives=2, n=900, stride=25)
+    starts = ws.segment_starts(200, 50)
+    n0 = len(drives[0])
+    assert np.all((starts >= ws.L - 1) & ((starts < n0 - 200 + 1) | (starts >= n0 + ws.L - 1)))  # inside a drive
+    assert np.all((starts + 200 <= n0) | (starts >= n0))  # never across the boundary
+    onboard, z, pose = ws.get_segments(starts[[0, -1]], 200, 10)
+    assert onboard.shape == (2 * 20, ws.L, schema.NUM_SIGNALS) and z.shape == (2, 200, 5) and pose.shape == (2, 200, 3)
+    s = starts[-1]
+    for j in (0, 7, 19):  # window j of the second segment ends at the segment's sample 10 j + 9
+        np.testing.assert_array_equal(onboard[20 + j, -1], ws.onboard[s + 10 * j + 9])
+        np.testing.assert_array_equal(onboard[20 + j, 0], ws.onboard[s + 10 * j + 9 - ws.L + 1])
+    np.testing.assert_array_equal(z[1], ws.z[s : s + 200])
+    with pytest.raises(ValueError, match="multiple"):
+        ws.get_segments(starts[:1], 205, 10)
+
+
+def test_long_horizon_finetuning_runs_the_filter_across_windows(toy_data, tmp_path):
+    cfg = replace(CFG, ft_horizon_s=2.0, ft_rows=10, ft_segments=2)
+    assert cfg.ft_horizon_steps() == 100
+    result = fit(toy_data, tmp_path / "seq", preset="tiny", model_cfg=PRESET.model, train_cfg=cfg, progress=False)
+    records = [json.loads(line) for line in result.metrics_path.read_text().splitlines()]
+    assert [r["stage"] for r in records] == ["pretrain", "finetune"]
+    assert np.isfinite(records[1]["train_pos"]) and records[1]["train_pos"] >= 0
+    # as many windows as a window epoch: 24 windows -> round(24 * 10 / 100) = 2 segments of 10 windows
+    assert records[1]["train_windows"] == 20
+    plain = fit(toy_data, tmp_path / "plain", preset="tiny", model_cfg=PRESET.model, train_cfg=CFG, progress=False)
+    assert plain.history[0]["val_nll"] == result.history[0]["val_nll"]  # the same up to the switch
+    assert plain.history[1]["val_nll"] != result.history[1]["val_nll"]
+    assert torch.load(result.best_path, weights_only=True)["train_config"]["ft_horizon_s"] == 2.0
+    with pytest.raises(ConfigError, match="ft_horizon_s"):
+        replace(CFG, ft_horizon_s=-1.0).validate()
+    assert replace(CFG, ft_horizon_s=0.1, ft_rows=10).ft_horizon_steps() == 10  # at least one window's rows
+    with pytest.raises(ConfigError, match="no training segment"):
+        fit(toy_data, tmp_path / "long", preset="tiny", model_cfg=PRESET.model,
+            train_cfg=replace(CFG, ft_horizon_s=60.0), progress=False)

@@ -43,6 +43,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--nll-reduction", choices=("sum", "mean"),
                         help="NLL over a window's decoder steps: 'sum' (the paper's) or 'mean' (the position term "
                              "of fine-tuning then weighs in); default: the preset's")
+    parser.add_argument("--ft-horizon", type=float, metavar="SECONDS",
+                        help="fine-tune through the EKF across consecutive windows over segments this long "
+                             "(0: the paper's, each window's 2 s of decoder steps); default: the preset's")
     parser.add_argument("--epochs", type=int, help="total epochs (70%% pretraining, 30%% fine-tuning)")
     parser.add_argument("--batch-size", type=int, help="windows per optimizer step, over all processes")
     parser.add_argument("--lr", type=float, help="Adam learning rate at the start of each stage")
@@ -110,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
         "epochs": args.epochs, "batch_size": args.batch_size, "lr": args.lr, "window_stride": args.window_stride,
         "seed": args.seed, "num_threads": args.threads, "max_train_windows": args.max_train_windows,
         "finetune": False if args.no_finetune else None, "nll_reduction": args.nll_reduction,
+        "ft_horizon_s": args.ft_horizon,
     })
     train_cfg.validate()
     torch.set_num_threads(train_cfg.num_threads)

@@ -51,9 +51,19 @@ def nll_loss(mean: torch.Tensor, var: torch.Tensor, z_gt: torch.Tensor, z_std: t
     raise ValueError(f"reduction must be 'sum' or 'mean', got {reduction!r}")
 
 
-def position_loss(d: torch.Tensor, d_gt: torch.Tensor, beta: float = 8.0) -> torch.Tensor:
-    """beta * tanh(sum_t ||d_t - d_t^gt||^2 / beta) per window: ``d``, ``d_gt`` (B, T, 2) [m] -> (B,)."""
-    sq = ((d - d_gt) ** 2).sum(dim=(1, 2))  # (B,) [m^2]
+def position_loss(d: torch.Tensor, d_gt: torch.Tensor, beta: float = 8.0, reduction: str = "sum") -> torch.Tensor:
+    """beta * tanh(sum_t ||d_t - d_t^gt||^2 / beta) per window: ``d``, ``d_gt`` (B, T, 2) [m] -> (B,).
+
+    ``reduction="mean"`` averages the squared errors over the T steps instead of summing them (long
+    segments: summed over 1000 steps of metre-size errors the tanh would be saturated, gradient ~0).
+    """
+    sq = ((d - d_gt) ** 2).sum(dim=2)  # (B, T) [m^2]
+    if reduction == "sum":
+        sq = sq.sum(dim=1)
+    elif reduction == "mean":
+        sq = sq.mean(dim=1)
+    else:
+        raise ValueError(f"reduction must be 'sum' or 'mean', got {reduction!r}")
     return beta * torch.tanh(sq / beta)
 
 

@@ -84,6 +84,13 @@ class TrainConfig:
     # "sum": the paper's NLL summed over the (L - H) x 5 terms of a window (about -2800 per window, next to
     # which the position term, bounded by beta, barely steers fine-tuning); "mean": averaged over them.
     nll_reduction: str = "sum"
+    # Fine-tuning horizon [s]. 0: the paper's, the EKF over each window's decoder steps (2 s). > 0: the EKF runs
+    # across consecutive windows the way streaming inference feeds it, over segments of this length, each
+    # sample's z from the window ending ft_rows - 1 or fewer samples later (its newest ft_rows decoder steps);
+    # the position term then sees the heading error a yaw-rate bias builds up, which at 2 s it barely does.
+    ft_horizon_s: float = 0.0
+    ft_rows: int = 10  # newest decoder steps per window on a segment (1 = exactly inference, 10x the windows)
+    ft_segments: int = 4  # segments per optimizer step
     mu: float = 1.0  # friction coefficient the physics guard uses in training (dry data)
     window_stride: int = 10  # samples between training windows
     val_stride: int = 50  # samples between validation windows (per-epoch loss)
@@ -98,6 +105,12 @@ class TrainConfig:
         if not self.finetune:
             return self.epochs
         return max(1, min(self.epochs - 1, round(self.pretrain_frac * self.epochs))) if self.epochs > 1 else 1
+
+    def ft_horizon_steps(self) -> int:
+        """Fine-tuning segment length [samples], a multiple of ``ft_rows``; 0 for the paper's per-window filter."""
+        if self.ft_horizon_s <= 0:
+            return 0
+        return max(1, round(self.ft_horizon_s / schema.DT_S / self.ft_rows)) * self.ft_rows
 
     def validate(self) -> None:
         if self.epochs < 1:
@@ -114,6 +127,8 @@ class TrainConfig:
             raise ConfigError(f"mu must be > 0, got {self.mu}")
         if self.nll_reduction not in ("sum", "mean"):
             raise ConfigError(f"nll_reduction must be 'sum' or 'mean', got {self.nll_reduction!r}")
+        if self.ft_horizon_s < 0 or self.ft_rows < 1 or self.ft_segments < 1:
+            raise ConfigError("ft_horizon_s must be >= 0, ft_rows and ft_segments >= 1")
         if self.lr_schedule not in ("cosine", "cosine_restart"):
             raise ConfigError(f"lr_schedule must be 'cosine' or 'cosine_restart', got {self.lr_schedule!r}")
 

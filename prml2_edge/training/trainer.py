@@ -4,7 +4,11 @@
    which is PRML2*): NLL (Eq. nll_loss) of the guarded predictions.
 2. **Fine-tuning** (the last 30 %): NLL + beta * tanh(sum_t ||d_t - d_t^gt||^2 / beta) with d_t
    the a-posteriori positions of the differentiable EKF run over the decoder steps, started from
-   the ground-truth state at the first decoder step in the window-local frame.
+   the ground-truth state at the first decoder step in the window-local frame. With
+   ``ft_horizon_s > 0`` the filter instead runs across consecutive windows over segments of that
+   length, fed as streaming inference feeds it (each window's newest ``ft_rows`` steps), started
+   from the ground truth at the segment's first sample, with the squared errors averaged over the
+   segment: NLL of those steps + beta * tanh(mean_t ||d_t - d_t^gt||^2 / beta).
 
 Adam with one cosine learning-rate schedule over all epochs (``lr_schedule="cosine"``), so
 PRML2 and PRML2* (same seed) are identical up to the switch and differ only in the fine-tuning
@@ -67,6 +71,9 @@ class WindowSource(Protocol):
     def get(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(onboard (b, L, 9) float32, z (b, L, 5) float32, pose (b, L, 3) float64)``."""
         ...
+
+    # fine-tuning over segments (``TrainConfig.ft_horizon_s > 0``) also needs
+    # ``segment_starts(length, stride)`` and ``get_segments(starts, length, rows)``.
 
 
 @dataclass
@@ -149,6 +156,16 @@ def _to_tensors(batch: tuple[np.ndarray, np.ndarray, np.ndarray], H: int):
     z_t = torch.as_tensor(np.ascontiguousarray(z), dtype=torch.float32)  # (b, L, 5)
     # window-local positions in float64 (world coordinates can be km: float32 would lose cm)
     d_gt = to_window_frame(torch.as_tensor(np.asarray(pose, dtype=np.float64)), H)[:, H:]  # (b, L-H, 2)
+    return onboard_t, z_t, d_gt
+
+
+def _segment_tensors(batch: tuple[np.ndarray, np.ndarray, np.ndarray]):
+    """Tensors of :meth:`WindowSet.get_segments`: onboard windows, segment z and segment positions in the
+    frame of each segment's first sample (float64)."""
+    onboard, z, pose = batch
+    onboard_t = torch.as_tensor(np.ascontiguousarray(onboard), dtype=torch.float32)
+    z_t = torch.as_tensor(np.ascontiguousarray(z), dtype=torch.float32)  # (b, T, 5)
+    d_gt = to_window_frame(torch.as_tensor(np.asarray(pose, dtype=np.float64)), 0)  # (b, T, 2)
     return onboard_t, z_t, d_gt
 
 
@@ -302,6 +319,9 @@ def fit(
             metrics_path.write_text("".join(json.dumps(h, sort_keys=True) + "\n" for h in history))
 
     filt = _Filter() if train_cfg.finetune else None
+    seq_len, seq_rows = train_cfg.ft_horizon_steps(), train_cfg.ft_rows
+    if train_cfg.finetune and seq_len and seq_rows > model_cfg.decoder_len:
+        raise ConfigError(f"ft_rows = {seq_rows} exceeds the model's {model_cfg.decoder_len} decoder steps")
     H = model_cfg.encoder_len
     n_train = len(data.train)
     steps_per_epoch = _steps_per_epoch(n_train, train_cfg, info.world_size)
@@ -320,29 +340,56 @@ def fit(
             stage_steps = stage_epochs * steps_per_epoch
         t_epoch = time.monotonic()
         rng = np.random.default_rng([train_cfg.seed, epoch])
-        order = rng.permutation(n_train)
-        if train_cfg.max_train_windows > 0:
-            order = order[: train_cfg.max_train_windows]
-        mine = ddp.shard(order, info)
-        batches = _batches(mine, per_rank_batch)
+        seq = stage == FINETUNE and seq_len > 0  # fine-tuning over segments, the EKF across windows
+        if seq:  # as many windows per epoch as the window epochs (each segment takes seq_len / seq_rows)
+            candidates = data.train.segment_starts(seq_len, train_cfg.window_stride)
+            if len(candidates) == 0:
+                raise ConfigError(f"no training segment of {train_cfg.ft_horizon_s:g} s (+ one window of history) "
+                                  "fits in a drive's training split; lower ft_horizon_s")
+            n_windows = min(n_train, train_cfg.max_train_windows) if train_cfg.max_train_windows > 0 else n_train
+            n_seg = max(1, round(n_windows * seq_rows / seq_len))
+            order = candidates[rng.permutation(len(candidates))[:n_seg]]
+            mine = ddp.shard(order, info)
+            batches = _batches(mine, max(1, train_cfg.ft_segments // info.world_size))
+        else:
+            order = rng.permutation(n_train)
+            if train_cfg.max_train_windows > 0:
+                order = order[: train_cfg.max_train_windows]
+            mine = ddp.shard(order, info)
+            batches = _batches(mine, per_rank_batch)
         sums = torch.zeros(4, dtype=torch.float64)  # loss, nll, pos, windows
         guard.reset_stats()
         train_model.train()
         bar = Progress(len(batches), desc=f"epoch {epoch + 1}/{train_cfg.epochs} {stage}", unit="batch",
                        enabled=(progress if info.is_main else False))
         for step_in_epoch, idx in enumerate(batches):
-            lr = cosine_lr(train_cfg.lr, (epoch - stage_first) * steps_per_epoch + step_in_epoch, stage_steps)
+            step = (epoch - stage_first) * steps_per_epoch + step_in_epoch
+            if seq:  # the schedule advances by window epochs, whatever the number of segment steps in one
+                step = (epoch - stage_first + step_in_epoch / len(batches)) * steps_per_epoch
+            lr = cosine_lr(train_cfg.lr, step, stage_steps)
             for group in optimizer.param_groups:
                 group["lr"] = lr
-            onboard, z, d_gt = _to_tensors(data.train.get(idx), H)
-            mean, var = guard(*train_model(onboard))  # (b, L-H, 5) each
-            nll = nll_loss(mean, var, z[:, H:], model.z_std, train_cfg.nll_reduction)  # (b,)
-            loss = nll.mean()
-            pos = torch.zeros(())
-            if stage == FINETUNE:
-                d = filt.positions(mean, var, z[:, H])  # (b, L-H, 2)
-                pos = position_loss(d, d_gt, train_cfg.beta).mean()
-                loss = loss + pos.to(loss.dtype)
+            if seq:
+                onboard, z_seg, d_gt = _segment_tensors(data.train.get_segments(idx, seq_len, seq_rows))
+                mean, var = guard(*train_model(onboard, rows=seq_rows))  # (b * seq_len / rows, rows, 5) each
+                mean = mean.reshape(len(idx), seq_len, -1)  # windows are segment-major, in time order
+                var = var.reshape(len(idx), seq_len, -1)
+                nll = nll_loss(mean, var, z_seg, model.z_std, train_cfg.nll_reduction)  # (b,)
+                d = filt.positions(mean, var, z_seg[:, 0])  # (b, seq_len, 2)
+                pos = position_loss(d, d_gt, train_cfg.beta, "mean").mean()
+                loss = nll.mean() + pos.to(nll.dtype)
+                n_items = len(idx) * seq_len // seq_rows  # windows
+            else:
+                onboard, z, d_gt = _to_tensors(data.train.get(idx), H)
+                mean, var = guard(*train_model(onboard))  # (b, L-H, 5) each
+                nll = nll_loss(mean, var, z[:, H:], model.z_std, train_cfg.nll_reduction)  # (b,)
+                loss = nll.mean()
+                pos = torch.zeros(())
+                if stage == FINETUNE:
+                    d = filt.positions(mean, var, z[:, H])  # (b, L-H, 2)
+                    pos = position_loss(d, d_gt, train_cfg.beta).mean()
+                    loss = loss + pos.to(loss.dtype)
+                n_items = len(idx)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             grad_norm = torch.nn.utils.clip_grad_norm_(params, train_cfg.grad_clip).item()  # after all-reduce
@@ -357,8 +404,8 @@ def fit(
                 log_g = math.log(max(grad_norm, 1e-30))
                 counters["grad_log_ema"] = log_g if not math.isfinite(ema) else 0.9 * ema + 0.1 * log_g
                 optimizer.step()
-                sums += torch.tensor([loss.item() * len(idx), nll.mean().item() * len(idx),
-                                      float(pos.item()) * len(idx), len(idx)], dtype=torch.float64)
+                sums += torch.tensor([loss.item() * n_items, nll.mean().item() * n_items,
+                                      float(pos.item()) * n_items, n_items], dtype=torch.float64)
             counters["steps"] += 1
             bar.update()
             if step_in_epoch % 5 == 0:
