@@ -62,11 +62,9 @@ def _paper_key(name: str) -> str | None:
     return None
 
 
-def _ci(d: dict, key: str, pct: bool = False) -> str:
-    v, (lo, hi) = d[key], d[key + "_ci95"]
-    if pct:
-        return f"{100 * v:.0f} % [{100 * lo:.0f}, {100 * hi:.0f}]"
-    return f"{v:.2f} [{lo:.2f}, {hi:.2f}]"
+def _ratio(d: dict) -> str:
+    lo, hi = d["rmse_ratio_ci95"]
+    return f"{100 * d['rmse_ratio']:.0f} % [{100 * lo:.0f}, {100 * hi:.0f}]"
 
 
 def _paired_lines(metrics: dict) -> list[str]:
@@ -84,9 +82,9 @@ def _paired_lines(metrics: dict) -> list[str]:
         s = snow.get(name)
         snow_cells = " |  | "
         if s and s.get("n_windows"):
-            snow_cells = (f"{_diff(s)} | {_ci(s, 'rmse_ratio', pct=True)} | "
+            snow_cells = (f"{_diff(s)} | {_ratio(s)} | "
                           f"{100 * s['reference_wins']:.0f} % of {s['n_windows']}")
-        lines.append(f"| {name} | {_diff(d)} | {_ci(d, 'rmse_ratio', pct=True)} | "
+        lines.append(f"| {name} | {_diff(d)} | {_ratio(d)} | "
                      f"{100 * d['reference_wins']:.0f} % of {d['n_windows']} | {snow_cells} |")
     lines += ["", f"A positive difference whose interval excludes 0: {ref} is better than that model beyond the "
               "window-to-window spread; an interval containing 0: the windows cannot tell them apart.", ""]

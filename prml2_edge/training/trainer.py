@@ -150,22 +150,14 @@ def _batches(indices: np.ndarray, batch_size: int) -> list[np.ndarray]:
     return [indices[i : i + batch_size] for i in range(0, len(indices), batch_size)]
 
 
-def _to_tensors(batch: tuple[np.ndarray, np.ndarray, np.ndarray], H: int):
+def _to_tensors(batch: tuple[np.ndarray, np.ndarray, np.ndarray], origin: int):
+    """Tensors of a ``(onboard, z, pose)`` batch; ground-truth positions from step ``origin`` on, in the frame
+    of that step: the first decoder step H for windows, 0 for segments (:meth:`WindowSet.get_segments`)."""
     onboard, z, pose = batch
     onboard_t = torch.as_tensor(np.ascontiguousarray(onboard), dtype=torch.float32)  # (b, L, 9)
-    z_t = torch.as_tensor(np.ascontiguousarray(z), dtype=torch.float32)  # (b, L, 5)
-    # window-local positions in float64 (world coordinates can be km: float32 would lose cm)
-    d_gt = to_window_frame(torch.as_tensor(np.asarray(pose, dtype=np.float64)), H)[:, H:]  # (b, L-H, 2)
-    return onboard_t, z_t, d_gt
-
-
-def _segment_tensors(batch: tuple[np.ndarray, np.ndarray, np.ndarray]):
-    """Tensors of :meth:`WindowSet.get_segments`: onboard windows, segment z and segment positions in the
-    frame of each segment's first sample (float64)."""
-    onboard, z, pose = batch
-    onboard_t = torch.as_tensor(np.ascontiguousarray(onboard), dtype=torch.float32)
-    z_t = torch.as_tensor(np.ascontiguousarray(z), dtype=torch.float32)  # (b, T, 5)
-    d_gt = to_window_frame(torch.as_tensor(np.asarray(pose, dtype=np.float64)), 0)  # (b, T, 2)
+    z_t = torch.as_tensor(np.ascontiguousarray(z), dtype=torch.float32)  # (b, L or T, 5)
+    # local positions in float64 (world coordinates can be km: float32 would lose cm)
+    d_gt = to_window_frame(torch.as_tensor(np.asarray(pose, dtype=np.float64)), origin)[:, origin:]
     return onboard_t, z_t, d_gt
 
 
@@ -173,8 +165,12 @@ def _stage_of(epoch: int, cfg: TrainConfig) -> str:
     return PRETRAIN if epoch < cfg.pretrain_epochs() else FINETUNE
 
 
+def _windows_per_epoch(n_windows: int, cfg: TrainConfig) -> int:
+    return min(n_windows, cfg.max_train_windows) if cfg.max_train_windows > 0 else n_windows
+
+
 def _steps_per_epoch(n_windows: int, cfg: TrainConfig, world_size: int) -> int:
-    n = min(n_windows, cfg.max_train_windows) if cfg.max_train_windows > 0 else n_windows
+    n = _windows_per_epoch(n_windows, cfg)
     per_rank = -(-n // world_size)
     per_rank_batch = max(1, cfg.batch_size // world_size)
     return max(1, -(-per_rank // per_rank_batch))
@@ -346,17 +342,15 @@ def fit(
             if len(candidates) == 0:
                 raise ConfigError(f"no training segment of {train_cfg.ft_horizon_s:g} s (+ one window of history) "
                                   "fits in a drive's training split; lower ft_horizon_s")
-            n_windows = min(n_train, train_cfg.max_train_windows) if train_cfg.max_train_windows > 0 else n_train
-            n_seg = max(1, round(n_windows * seq_rows / seq_len))
+            n_seg = max(1, round(_windows_per_epoch(n_train, train_cfg) * seq_rows / seq_len))
             order = candidates[rng.permutation(len(candidates))[:n_seg]]
-            mine = ddp.shard(order, info)
-            batches = _batches(mine, max(1, train_cfg.ft_segments // info.world_size))
+            batch_size = max(1, train_cfg.ft_segments // info.world_size)
         else:
             order = rng.permutation(n_train)
             if train_cfg.max_train_windows > 0:
                 order = order[: train_cfg.max_train_windows]
-            mine = ddp.shard(order, info)
-            batches = _batches(mine, per_rank_batch)
+            batch_size = per_rank_batch
+        batches = _batches(ddp.shard(order, info), batch_size)
         sums = torch.zeros(4, dtype=torch.float64)  # loss, nll, pos, windows
         guard.reset_stats()
         train_model.train()
@@ -369,27 +363,24 @@ def fit(
             lr = cosine_lr(train_cfg.lr, step, stage_steps)
             for group in optimizer.param_groups:
                 group["lr"] = lr
-            if seq:
-                onboard, z_seg, d_gt = _segment_tensors(data.train.get_segments(idx, seq_len, seq_rows))
+            if seq:  # the newest seq_rows steps of each window tile its segment
+                onboard, z_gt, d_gt = _to_tensors(data.train.get_segments(idx, seq_len, seq_rows), 0)
                 mean, var = guard(*train_model(onboard, rows=seq_rows))  # (b * seq_len / rows, rows, 5) each
                 mean = mean.reshape(len(idx), seq_len, -1)  # windows are segment-major, in time order
                 var = var.reshape(len(idx), seq_len, -1)
-                nll = nll_loss(mean, var, z_seg, model.z_std, train_cfg.nll_reduction)  # (b,)
-                d = filt.positions(mean, var, z_seg[:, 0])  # (b, seq_len, 2)
-                pos = position_loss(d, d_gt, train_cfg.beta, "mean").mean()
-                loss = nll.mean() + pos.to(nll.dtype)
-                n_items = len(idx) * seq_len // seq_rows  # windows
+                pos_reduction, n_items = "mean", len(idx) * seq_len // seq_rows  # n_items: windows
             else:
                 onboard, z, d_gt = _to_tensors(data.train.get(idx), H)
                 mean, var = guard(*train_model(onboard))  # (b, L-H, 5) each
-                nll = nll_loss(mean, var, z[:, H:], model.z_std, train_cfg.nll_reduction)  # (b,)
-                loss = nll.mean()
-                pos = torch.zeros(())
-                if stage == FINETUNE:
-                    d = filt.positions(mean, var, z[:, H])  # (b, L-H, 2)
-                    pos = position_loss(d, d_gt, train_cfg.beta).mean()
-                    loss = loss + pos.to(loss.dtype)
-                n_items = len(idx)
+                z_gt = z[:, H:]
+                pos_reduction, n_items = "sum", len(idx)
+            nll = nll_loss(mean, var, z_gt, model.z_std, train_cfg.nll_reduction)  # (b,)
+            loss = nll.mean()
+            pos = torch.zeros(())
+            if stage == FINETUNE:  # the EKF from the ground truth at the first step of mean/var
+                d = filt.positions(mean, var, z_gt[:, 0])  # (b, L-H or seq_len, 2)
+                pos = position_loss(d, d_gt, train_cfg.beta, pos_reduction).mean()
+                loss = loss + pos.to(loss.dtype)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             grad_norm = torch.nn.utils.clip_grad_norm_(params, train_cfg.grad_clip).item()  # after all-reduce
