@@ -143,6 +143,31 @@ class EkfState:
     NAMES = ("p_x_m", "p_y_m", "psi_rad", "omega_z_radps", "v_x_mps", "v_y_mps", "a_x_mps2", "a_y_mps2")
 
 
+class CalState:
+    """Slow error states appended to :class:`EkfState` when the filter self-calibrates.
+
+    Full state with calibration: ``[EkfState (8) | offset_yaw, scale_wheel, bias_model_omega]``.
+    Each is a random walk; what makes it observable (standstill, GNSS, the raw cues) is in
+    :mod:`prml2_edge.runtime.filter`. Measurement models:
+
+    * ``YAW_RATE_OFFSET`` [rad/s]: CAN yaw rate ``psi_dot = omega_z + offset``;
+    * ``WHEEL_SCALE`` [1]: rear-axle wheel speed ``(v_rl + v_rr) / 2 = (1 + scale) v_x`` (rolling
+      radius error; 0.01 means the wheels read 1 % fast);
+    * ``MODEL_OMEGA_BIAS`` [rad/s]: the model's ``omega_z = omega_z + bias`` (its error is slow, a
+      bias over the 5 s window; against the calibrated CAN yaw rate it is observable while driving).
+    """
+
+    START = 8
+    YAW_RATE_OFFSET = slice(8, 9)
+    WHEEL_SCALE = slice(9, 10)
+    MODEL_OMEGA_BIAS = slice(10, 11)
+    ALL = slice(8, 11)
+    DIM = 3
+    NAMES = ("yaw_rate_offset_radps", "wheel_scale", "model_omega_bias_radps")
+    FULL_DIM = 11  # EkfState.DIM + DIM
+    FULL_NAMES = EkfState.NAMES + NAMES
+
+
 # Measurement model: H selects z (in z order) from the EKF state.
 Z_TO_EKF_INDEX: tuple[int, ...] = (4, 5, 6, 7, 3)  # v_x, v_y, a_x, a_y, omega_z
 

@@ -267,3 +267,72 @@ def test_edge_modules_import_without_torch() -> None:
         "assert 'torch' not in [m.split('.')[0] for m in sys.modules if sys.modules[m] is not None]\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
+
+
+# ---- calibration states ---------------------------------------------------------------------------
+
+def _calibrated_run(offset: float, scale: float, steps: int, seed: int = 0, standstill: bool = False):
+    """A filter fed the raw cues of a car with a known yaw-rate offset and wheel scale error, plus GNSS heading
+    and position at 10 Hz (or, with ``standstill``, parked: zero-velocity updates only)."""
+    rng = np.random.default_rng(seed)
+    ekf = ne.Ekf(calibration=True)
+    x_true = np.zeros(EkfState.DIM)
+    x_true[EkfState.VEL.start] = 0.0 if standstill else 12.0
+    for k in range(steps):
+        omega = 0.0 if standstill else 0.15 * math.sin(0.3 * k * DT)
+        x_true[EkfState.OMEGA_Z] = omega
+        x_true = ne.process_model(x_true, DT)
+        ekf.step()
+        yaw = omega + offset + rng.normal(scale=0.003)
+        wheel = (1.0 + scale) * x_true[EkfState.VEL.start] + rng.normal(scale=0.02)
+        ekf.update_cues(yaw, 0.003**2, None if standstill else wheel, 0.02**2)
+        if standstill:
+            ekf.update_standstill(1e-4, 1e-6)
+        elif k % 5 == 0:
+            ekf.fuse_pose(x_true[EkfState.POS] + rng.normal(scale=0.5, size=2), 0.25,
+                          float(x_true[EkfState.YAW][0]) + rng.normal(scale=0.01), 1e-4)
+    return ekf
+
+
+def test_calibration_converges_to_known_offsets_with_gnss() -> None:
+    ekf = _calibrated_run(offset=math.radians(-0.4), scale=0.01, steps=1500)  # 30 s of GNSS
+    b = ekf.cal[0]
+    assert abs(math.degrees(b) + 0.4) < 0.05
+    assert math.sqrt(ekf.cal_cov[0, 0]) < math.radians(0.05)  # and it knows it
+    # the wheel scale is slower: GNSS positions pin the mean speed only over seconds
+    ekf = _calibrated_run(offset=math.radians(-0.4), scale=0.01, steps=3000)
+    k = ekf.cal[1]
+    assert abs(k - 0.01) < 0.003
+    assert math.sqrt(ekf.cal_cov[1, 1]) < 0.002
+
+
+def test_standstill_reveals_the_yaw_offset_without_gnss() -> None:
+    ekf = _calibrated_run(offset=math.radians(0.3), scale=0.0, steps=250, standstill=True)
+    assert abs(math.degrees(ekf.cal[0]) - 0.3) < 0.05  # 5 s parked, 0.17 deg/s noise per sample
+    np.testing.assert_allclose(ekf.x[EkfState.VEL], 0.0, atol=1e-3)
+    # the wheel scale is not observable at standstill: its uncertainty stays at the prior
+    assert math.sqrt(ekf.cal_cov[1, 1]) == pytest.approx(ne.CalibrationStd().wheel_scale, rel=1e-3)
+
+
+def test_calibrated_filter_without_cues_matches_the_plain_filter() -> None:
+    rng = np.random.default_rng(3)
+    plain, cal = ne.Ekf(), ne.Ekf(calibration=True)
+    assert cal.x.shape == (schema.CalState.FULL_DIM,) and cal.P.shape == (11, 11)
+    for _ in range(200):
+        z = rng.normal(size=5)
+        var = 10.0 ** rng.uniform(-3, 0, 5)
+        plain.step(z, var)
+        cal.step(z, var)
+    # the model bias absorbs part of the omega innovations, so omega differs; the rest of the motion agrees
+    assert np.abs(cal.x[EkfState.VEL] - plain.x[EkfState.VEL]).max() < 1e-9
+    with pytest.raises(RuntimeError, match="calibration"):
+        plain.update_cues(0.1, 1e-4)
+
+
+def test_set_calibration_restores_states_and_covariance() -> None:
+    ekf = ne.Ekf(calibration=True)
+    ekf.set_calibration([0.01, -0.02, 0.0], np.diag([1e-6, 1e-6, 1e-5]))
+    np.testing.assert_array_equal(ekf.cal, [0.01, -0.02, 0.0])
+    np.testing.assert_allclose(np.diag(ekf.cal_cov), [1e-6, 1e-6, 1e-5])
+    assert ekf.update_cues(float("nan"), 1e-4) is ne.StepStatus.INPUT_INVALID
+    assert ekf.update_standstill(-1.0) is ne.StepStatus.INPUT_INVALID

@@ -35,9 +35,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from prml2_edge import schema
-from prml2_edge.schema import EkfState
+from prml2_edge.schema import CalState, EkfState
 
 STATE_DIM = EkfState.DIM  # 8
+FULL_DIM = CalState.FULL_DIM  # 11: with the calibration states (Ekf(calibration=True))
 MEAS_DIM = schema.NUM_STATES  # 5
 _Z_IDX = np.asarray(schema.Z_TO_EKF_INDEX, dtype=np.intp)  # H as a selection of state indices
 _POS_IDX = np.arange(EkfState.POS.start, EkfState.POS.stop, dtype=np.intp)  # (2,)
@@ -48,6 +49,9 @@ _VX, _VY = EkfState.VEL.start, EkfState.VEL.start + 1  # 4, 5
 _AX, _AY = EkfState.ACC.start, EkfState.ACC.start + 1  # 6, 7
 _VEL = EkfState.VEL
 _ACC = EkfState.ACC
+_B_YAW = CalState.YAW_RATE_OFFSET.start  # 8
+_K_WHEEL = CalState.WHEEL_SCALE.start  # 9
+_B_MODEL = CalState.MODEL_OMEGA_BIAS.start  # 10
 
 # Cholesky of the innovation covariance S: S = H P H^T + R_t is positive definite in exact
 # arithmetic (R_t > 0); rounding can break that when variances span many decades. Then a
@@ -121,6 +125,62 @@ class ProcessNoise:
 
 
 @dataclass(frozen=True)
+class CalibrationNoise:
+    """Random-walk PSDs of the calibration states (:class:`prml2_edge.schema.CalState`), tunable.
+
+    * ``yaw_offset_psd_rad2ps3``: the CAN yaw-rate offset drifts (temperature) by ~0.03 deg/s in
+      10 min (1 sigma) at the default 2.2e-11 rad^2/s^3;
+    * ``wheel_scale_psd_ps``: the rolling radius changes with tyre temperature and pressure, ~0.1 %
+      in 10 min at 1.7e-9 1/s;
+    * ``model_bias_psd_rad2ps3``: the model's omega_z error wanders within seconds (it is a bias over
+      one 5 s window): 2e-6 rad^2/s^3 lets it move by ~0.1 deg/s in 1 s.
+    """
+
+    yaw_offset_psd_rad2ps3: float = 2.2e-11
+    wheel_scale_psd_ps: float = 1.7e-9
+    model_bias_psd_rad2ps3: float = 2e-6
+
+    def diagonal(self, dt_s: float = schema.DT_S) -> np.ndarray:
+        """Process-noise variances (3,) of the calibration states over ``dt_s`` [s]."""
+        v = np.array([self.yaw_offset_psd_rad2ps3, self.wheel_scale_psd_ps, self.model_bias_psd_rad2ps3])
+        if not np.all(v >= 0.0):
+            raise ValueError("calibration process-noise PSDs must be >= 0")
+        return v * float(dt_s)
+
+
+@dataclass(frozen=True)
+class CalibrationStd:
+    """One-sigma prior of the calibration states with no saved calibration (tunable), SI units.
+
+    0.5 deg/s covers the offsets seen (simulator sigma 0.25 deg/s, a real RAV4 -0.41 deg/s);
+    2 % covers worn to new tyres; 0.5 deg/s for the model's window bias.
+    """
+
+    yaw_offset_radps: float = 0.5 * schema.DEG_TO_RAD
+    wheel_scale: float = 0.02
+    model_bias_radps: float = 0.5 * schema.DEG_TO_RAD
+
+    def diagonal(self) -> np.ndarray:
+        std = np.array([self.yaw_offset_radps, self.wheel_scale, self.model_bias_radps])
+        if not np.all(std > 0.0):
+            raise ValueError("calibration standard deviations must be > 0")
+        return std**2
+
+
+def extend_calibrated(q_or_p: np.ndarray, cal_diag: np.ndarray) -> np.ndarray:
+    """An (8, 8) ``Q`` or ``P`` extended to the calibrated layout (11, 11), ``cal_diag`` (3,) on the new diagonal."""
+    m = np.asarray(q_or_p, dtype=np.float64)
+    if m.shape == (FULL_DIM, FULL_DIM):
+        return m.copy()
+    if m.shape != (STATE_DIM, STATE_DIM):
+        raise ValueError(f"expected a ({STATE_DIM}, {STATE_DIM}) matrix, got {m.shape}")
+    out = np.zeros((FULL_DIM, FULL_DIM))
+    out[:STATE_DIM, :STATE_DIM] = m
+    out[CalState.ALL, CalState.ALL] = np.diag(np.asarray(cal_diag, dtype=np.float64))
+    return out
+
+
+@dataclass(frozen=True)
 class InitialStd:
     """One-sigma initial uncertainty of each state component (tunable), SI units.
 
@@ -177,8 +237,8 @@ def rotation(psi_rad: float) -> np.ndarray:
 
 def _check_state(x: np.ndarray) -> np.ndarray:
     x = np.asarray(x, dtype=np.float64)
-    if x.shape != (STATE_DIM,):
-        raise ValueError(f"state must have shape ({STATE_DIM},), got {x.shape}")
+    if x.shape not in ((STATE_DIM,), (FULL_DIM,)):
+        raise ValueError(f"state must have shape ({STATE_DIM},) or, calibrated, ({FULL_DIM},), got {x.shape}")
     return x
 
 
@@ -187,12 +247,13 @@ def process_model(x: np.ndarray, dt_s: float) -> np.ndarray:
 
     Parameters
     ----------
-    x : (8,) state, layout :class:`prml2_edge.schema.EkfState`.
+    x : (8,) state, layout :class:`prml2_edge.schema.EkfState`, or (11,) with the calibration
+        states (:class:`prml2_edge.schema.CalState`, random walks: constant here).
     dt_s : step [s].
 
     Returns
     -------
-    (8,) predicted state; ``psi`` is not wrapped.
+    predicted state, same shape; ``psi`` is not wrapped.
     """
     x = _check_state(x)
     dt = float(dt_s)
@@ -214,7 +275,7 @@ def process_jacobian(x: np.ndarray, dt_s: float) -> np.ndarray:
     dt = float(dt_s)
     r = rotation(x[_YAW])
     rd = r @ (x[_VEL] * dt + x[_ACC] * (0.5 * dt * dt))  # R d
-    f = np.eye(STATE_DIM)
+    f = np.eye(x.shape[0])
     f[_PX, _YAW] = -rd[1]  # dR/dpsi d = (-(R d)_y, (R d)_x)
     f[_PY, _YAW] = rd[0]
     f[EkfState.POS, _VEL] = r * dt
@@ -296,6 +357,70 @@ def _update_selected(
     return x_new, symmetrize(p_new)
 
 
+def update_linear(
+    x: np.ndarray, P: np.ndarray, h: np.ndarray, innovation: np.ndarray, meas_var: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Kalman update with a dense (linearised) ``H`` (m, n): the raw cues and the calibrated model z.
+
+    Same Cholesky gain and Joseph form as the selection update; ``innovation = y - h(x)`` (m,),
+    ``meas_var`` (m,) the diagonal of ``R``.
+    """
+    hp = h @ P  # (m, n)
+    s = hp @ h.T + np.diag(meas_var)
+    chol = cholesky_jittered(s)
+    k_t = np.linalg.solve(chol.T, np.linalg.solve(chol, hp))  # (m, n) = S^-1 H P
+    k = k_t.T
+    x_new = x + k @ innovation
+    a = np.eye(P.shape[0]) - k @ h
+    p_new = a @ P @ a.T + (k * meas_var) @ k_t
+    return x_new, symmetrize(p_new)
+
+
+def model_measurement_matrix() -> np.ndarray:
+    """``H`` (5, 11) of the model's z in the calibrated layout: the selection, plus the model's omega_z bias."""
+    h = np.zeros((MEAS_DIM, FULL_DIM))
+    h[np.arange(MEAS_DIM), _Z_IDX] = 1.0
+    h[schema.Z.OMEGA_Z, _B_MODEL] = 1.0
+    return h
+
+
+_H_MODEL_CAL = model_measurement_matrix()
+
+
+def update_model_calibrated(x: np.ndarray, P: np.ndarray, z: np.ndarray,
+                            z_var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The model's pseudo-measurement ``z`` (5,) in the calibrated layout: ``omega_z`` carries the model bias."""
+    return update_linear(x, P, _H_MODEL_CAL, z - _H_MODEL_CAL @ x, z_var)
+
+
+def cue_measurement(x: np.ndarray, yaw_rate: float | None, wheel_speed: float | None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Raw-cue model ``h(x)`` and its Jacobian (calibrated layout) for the cues given (None: absent).
+
+    * CAN yaw rate: ``h = omega_z + offset`` (linear);
+    * rear-axle wheel speed: ``h = (1 + scale) v_x``, ``dh/dv_x = 1 + scale``, ``dh/dscale = v_x``.
+
+    Returns ``(innovation (m,), H (m, 11))`` with ``m`` the number of cues given.
+    """
+    rows, innov = [], []
+    if yaw_rate is not None:
+        row = np.zeros(FULL_DIM)
+        row[_OMEGA] = row[_B_YAW] = 1.0
+        rows.append(row)
+        innov.append(yaw_rate - (x[_OMEGA] + x[_B_YAW]))
+    if wheel_speed is not None:
+        row = np.zeros(FULL_DIM)
+        row[_VX] = 1.0 + x[_K_WHEEL]
+        row[_K_WHEEL] = x[_VX]
+        rows.append(row)
+        innov.append(wheel_speed - (1.0 + x[_K_WHEEL]) * x[_VX])
+    return np.asarray(innov, dtype=np.float64), np.asarray(rows, dtype=np.float64).reshape(len(rows), FULL_DIM)
+
+
+# Standstill: v_x, v_y, a_x, a_y and omega_z are zero (the zero-velocity / zero-rotation update).
+_STANDSTILL_IDX = np.array([_VX, _VY, _AX, _AY, _OMEGA], dtype=np.intp)
+
+
 def update(x: np.ndarray, P: np.ndarray, z: np.ndarray, z_var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """EKF update with a pseudo-measurement of the dynamic state (Eqs. measurement_vector, kalman stable).
 
@@ -365,10 +490,15 @@ class Ekf:
 
     Parameters
     ----------
-    x0 : (8,) initial state (default zeros: at the origin, heading east, at rest).
-    P0 : (8, 8) initial covariance (default :func:`default_initial_covariance`).
-    Q : (8, 8) process noise for ``dt_s`` (default :func:`default_process_noise`).
+    x0 : (8,) initial state (default zeros: at the origin, heading east, at rest); with
+        ``calibration`` also (11,) (an (8,) state starts the calibration states at zero).
+    P0 : (8, 8) initial covariance (default :func:`default_initial_covariance`); with
+        ``calibration`` also (11, 11) (an (8, 8) one is extended with :class:`CalibrationStd`).
+    Q : (8, 8) process noise for ``dt_s`` (default :func:`default_process_noise`); with
+        ``calibration`` extended with :class:`CalibrationNoise` unless it is (11, 11).
     dt_s : step [s].
+    calibration : carry the calibration states (:class:`prml2_edge.schema.CalState`) and accept the
+        raw cues (:meth:`update_cues`) and standstill updates (:meth:`update_standstill`).
     """
 
     def __init__(
@@ -377,24 +507,40 @@ class Ekf:
         P0: np.ndarray | None = None,
         Q: np.ndarray | None = None,
         dt_s: float = schema.DT_S,
+        calibration: bool = False,
+        cal_noise: CalibrationNoise | None = None,
+        cal_std: CalibrationStd | None = None,
     ) -> None:
         if not (dt_s > 0.0):
             raise ValueError(f"dt_s must be > 0, got {dt_s!r}")
         self.dt_s = float(dt_s)
-        self.Q = default_process_noise(self.dt_s) if Q is None else np.array(Q, dtype=np.float64)
-        if self.Q.shape != (STATE_DIM, STATE_DIM):
-            raise ValueError(f"Q must have shape ({STATE_DIM}, {STATE_DIM}), got {self.Q.shape}")
-        self.x: np.ndarray = np.zeros(STATE_DIM)
-        self.P: np.ndarray = default_initial_covariance()
+        self.calibration = bool(calibration)
+        self.dim = FULL_DIM if self.calibration else STATE_DIM
+        self.cal_std = cal_std or CalibrationStd()
+        q = default_process_noise(self.dt_s) if Q is None else np.array(Q, dtype=np.float64)
+        if self.calibration:
+            q = extend_calibrated(q, (cal_noise or CalibrationNoise()).diagonal(self.dt_s))
+        if q.shape != (self.dim, self.dim):
+            raise ValueError(f"Q must have shape ({self.dim}, {self.dim}), got {q.shape}")
+        self.Q = q
+        self.x: np.ndarray = np.zeros(self.dim)
+        self.P: np.ndarray = np.eye(self.dim)
         self.n_resets = 0
         self.reset(x0, P0)
 
     def reset(self, x0: np.ndarray | None = None, P0: np.ndarray | None = None) -> None:
-        """Restart from ``x0`` (8,) / ``P0`` (8, 8) (defaults: zeros / :func:`default_initial_covariance`)."""
-        x = np.zeros(STATE_DIM) if x0 is None else _check_state(x0).copy()
+        """Restart from ``x0`` / ``P0`` (defaults: zeros / :func:`default_initial_covariance`; see the class)."""
+        x = np.zeros(self.dim)
+        if x0 is not None:
+            x0 = _check_state(x0)
+            if x0.shape[0] > self.dim:
+                raise ValueError(f"state must have shape ({self.dim},), got {x0.shape}")
+            x[: x0.shape[0]] = x0
         p = default_initial_covariance() if P0 is None else np.array(P0, dtype=np.float64)
-        if p.shape != (STATE_DIM, STATE_DIM):
-            raise ValueError(f"P0 must have shape ({STATE_DIM}, {STATE_DIM}), got {p.shape}")
+        if self.calibration and p.shape == (STATE_DIM, STATE_DIM):
+            p = extend_calibrated(p, self.cal_std.diagonal())
+        if p.shape != (self.dim, self.dim):
+            raise ValueError(f"P0 must have shape ({self.dim}, {self.dim}), got {p.shape}")
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(p))):
             raise ValueError("x0 and P0 must be finite")
         self.x, self.P = x, symmetrize(p)
@@ -436,9 +582,9 @@ class Ekf:
             if not valid:
                 return self._commit(x, p, StepStatus.INPUT_INVALID)
             try:
-                x, p = update(x, p, zz, vv)
+                x, p = update_model_calibrated(x, p, zz, vv) if self.calibration else update(x, p, zz, vv)
             except np.linalg.LinAlgError:
-                x = np.full(STATE_DIM, np.nan)  # cannot happen for finite P; handled as a reset
+                x = np.full(self.dim, np.nan)  # cannot happen for finite P; handled as a reset
             return self._commit(x, p, StepStatus.SUCCESS)
 
     def fuse_pose(
@@ -463,8 +609,71 @@ class Ekf:
             try:
                 x, p = update_pose(self.x, self.P, pos, var, yaw_rad, yaw_var)
             except np.linalg.LinAlgError:
-                x, p = np.full(STATE_DIM, np.nan), self.P
+                x, p = np.full(self.dim, np.nan), self.P
             return self._commit(x, p, StepStatus.SUCCESS)
+
+    def update_cues(self, yaw_rate: float | None = None, yaw_var: float = 1.0, wheel_speed: float | None = None,
+                    wheel_var: float = 1.0) -> StepStatus:
+        """Fuse the raw cues at the current time (no prediction): CAN yaw rate [rad/s] and rear-axle
+        wheel speed [m/s] through the calibration states (:func:`cue_measurement`), variances > 0.
+
+        Only with ``calibration``; ``PREDICT_ONLY`` when neither cue is given.
+        """
+        if not self.calibration:
+            raise RuntimeError("raw cues need the calibration states: Ekf(calibration=True)")
+        cues = [(c, v) for c, v in ((yaw_rate, yaw_var), (wheel_speed, wheel_var)) if c is not None]
+        if not cues:
+            return StepStatus.PREDICT_ONLY
+        if not all(math.isfinite(c) and math.isfinite(v) and v > 0.0 for c, v in cues):
+            return StepStatus.INPUT_INVALID
+        with np.errstate(all="ignore"):
+            innovation, h = cue_measurement(self.x, yaw_rate, wheel_speed)
+            var = np.array([v for _, v in cues])
+            try:
+                x, p = update_linear(self.x, self.P, h, innovation, var)
+            except np.linalg.LinAlgError:
+                x, p = np.full(self.dim, np.nan), self.P
+            return self._commit(x, p, StepStatus.SUCCESS)
+
+    def update_standstill(self, var: float, omega_var: float | None = None) -> StepStatus:
+        """Zero-velocity and zero-rotation update: ``v = a = 0`` with variance ``var`` [SI^2] each and
+        ``omega_z = 0`` with ``omega_var`` [rad^2/s^2] (default ``var``).
+
+        With the raw yaw-rate cue at the same step this makes the yaw-rate offset observable without GNSS.
+        """
+        omega_var = var if omega_var is None else omega_var
+        if not (math.isfinite(var) and var > 0.0 and math.isfinite(omega_var) and omega_var > 0.0):
+            return StepStatus.INPUT_INVALID
+        with np.errstate(all="ignore"):
+            idx = _STANDSTILL_IDX
+            meas_var = np.array([var, var, var, var, omega_var])
+            try:
+                x, p = _update_selected(self.x, self.P, idx, -self.x[idx], meas_var)
+            except np.linalg.LinAlgError:
+                x, p = np.full(self.dim, np.nan), self.P
+            return self._commit(x, p, StepStatus.SUCCESS)
+
+    @property
+    def cal(self) -> np.ndarray:
+        """The calibration states (3,) (:class:`prml2_edge.schema.CalState`; empty without ``calibration``)."""
+        return self.x[STATE_DIM:].copy()
+
+    @property
+    def cal_cov(self) -> np.ndarray:
+        """Their covariance (3, 3) (empty without ``calibration``)."""
+        return self.P[STATE_DIM:, STATE_DIM:].copy()
+
+    def set_calibration(self, cal: np.ndarray, cal_cov: np.ndarray) -> None:
+        """Start the calibration states at ``cal`` (3,) with covariance ``cal_cov`` (3, 3) (a restored file)."""
+        cal = np.asarray(cal, dtype=np.float64).reshape(CalState.DIM)
+        cov = np.asarray(cal_cov, dtype=np.float64).reshape(CalState.DIM, CalState.DIM)
+        if not self.calibration:
+            raise RuntimeError("no calibration states: Ekf(calibration=True)")
+        self.x[CalState.ALL] = cal
+        self.P[CalState.ALL, :] = 0.0
+        self.P[:, CalState.ALL] = 0.0
+        self.P[CalState.ALL, CalState.ALL] = symmetrize(cov)
+        self._last_good = (self.x.copy(), self.P.copy())
 
     @property
     def pose(self) -> tuple[float, float, float]:

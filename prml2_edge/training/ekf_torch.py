@@ -27,9 +27,10 @@ from torch import Tensor
 from prml2_edge import schema
 from prml2_edge.ekf import numpy_ekf
 from prml2_edge.ekf.numpy_ekf import jitter_schedule
-from prml2_edge.schema import EkfState
+from prml2_edge.schema import CalState, EkfState
 
 STATE_DIM = EkfState.DIM  # 8
+FULL_DIM = CalState.FULL_DIM  # 11 with the calibration states (random walks: identity rows of F)
 MEAS_DIM = schema.NUM_STATES  # 5
 _PX, _PY = EkfState.POS_X.start, EkfState.POS_Y.start
 _YAW = EkfState.YAW.start
@@ -54,17 +55,19 @@ def _z_index(device: torch.device) -> Tensor:
 
 # Rows _NPOS.. of F are constant: identity plus ``state += dt * rate`` for these (state, rate) pairs.
 _RATE_PAIRS = ((_YAW, _OMEGA), (_VX, _AX), (_VY, _AY))
-_SRC_ROW = [next((r for st, r in _RATE_PAIRS if st == i), i) for i in range(_NPOS, STATE_DIM)]  # rate row or self
-_HAS_RATE = [float(any(st == i for st, _ in _RATE_PAIRS)) for i in range(_NPOS, STATE_DIM)]
-_CONST_CACHE: dict[tuple[torch.dtype, torch.device], tuple[Tensor, Tensor]] = {}
+_CONST_CACHE: dict[tuple[int, torch.dtype, torch.device], tuple[Tensor, Tensor]] = {}
 
 
-def _constants(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
-    key = (dtype, device)
+def _constants(n: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """For a state of ``n`` components (8, or 11 calibrated): the rate row of each row after the position
+    (itself where none) and whether it has one, (n - 2,) and (n - 2, 1)."""
+    key = (n, dtype, device)
     if key not in _CONST_CACHE:
+        src = [next((r for st, r in _RATE_PAIRS if st == i), i) for i in range(_NPOS, n)]
+        has = [float(any(st == i for st, _ in _RATE_PAIRS)) for i in range(_NPOS, n)]
         _CONST_CACHE[key] = (
-            torch.tensor(_SRC_ROW, dtype=torch.long, device=device),
-            torch.tensor(_HAS_RATE, dtype=dtype, device=device).unsqueeze(-1),  # (6, 1)
+            torch.tensor(src, dtype=torch.long, device=device),
+            torch.tensor(has, dtype=dtype, device=device).unsqueeze(-1),
         )
     return _CONST_CACHE[key]
 
@@ -106,7 +109,7 @@ def _rotation_terms(x: Tensor, dt: float) -> tuple[Tensor, Tensor]:
 
 def _linear_part(x: Tensor, dt: float) -> Tensor:
     """Components after the position of ``f(x)``: ``psi += omega dt``, ``v += a dt``, the rest constant; (..., 6)."""
-    src, has_rate = _constants(x.dtype, x.device)
+    src, has_rate = _constants(x.shape[-1], x.dtype, x.device)
     return x[..., _NPOS:] + (dt * has_rate.squeeze(-1)) * x.index_select(-1, src)
 
 
@@ -120,13 +123,16 @@ def process_model(x: Tensor, dt_s: float) -> Tensor:
     return torch.cat([x[..., EkfState.POS] + rd, _linear_part(x, dt)], dim=-1)
 
 
-def _jacobian_top(rot: Tensor, rd: Tensor, dt: float) -> Tensor:
+def _jacobian_top(rot: Tensor, rd: Tensor, dt: float, n: int = STATE_DIM) -> Tensor:
     """The state-dependent block ``G = dp / d(psi, omega, v, a)`` (..., 2, 6) of ``F``.
 
     ``dR/dpsi d = (-(R d)_y, (R d)_x)``, ``dp/domega = 0``, ``dp/dv = R dt``, ``dp/da = R dt^2/2``.
     """
     d_psi = torch.stack([-rd[..., 1], rd[..., 0]], dim=-1).unsqueeze(-1)  # (..., 2, 1)
-    return torch.cat([d_psi, torch.zeros_like(d_psi), rot * dt, rot * (0.5 * dt * dt)], dim=-1)
+    parts = [d_psi, torch.zeros_like(d_psi), rot * dt, rot * (0.5 * dt * dt)]
+    if n > STATE_DIM:  # the calibration states do not move the position
+        parts.append(d_psi.new_zeros(*d_psi.shape[:-1], n - STATE_DIM))
+    return torch.cat(parts, dim=-1)
 
 
 def process_jacobian(x: Tensor, dt_s: float) -> Tensor:
@@ -136,20 +142,21 @@ def process_jacobian(x: Tensor, dt_s: float) -> Tensor:
     ``dp/da = R dt^2/2``, ``dpsi/domega = dt``, ``dv/da = dt I``.
     """
     dt = float(dt_s)
-    eye = torch.eye(STATE_DIM, dtype=x.dtype, device=x.device)
+    n = x.shape[-1]
+    eye = torch.eye(n, dtype=x.dtype, device=x.device)
     for st, rate in _RATE_PAIRS:
         eye[st, rate] = dt
-    eye = eye.expand(*x.shape[:-1], STATE_DIM, STATE_DIM)
+    eye = eye.expand(*x.shape[:-1], n, n)
     rot, rd = _rotation_terms(x, dt)
-    top = torch.cat([eye[..., :_NPOS, :_NPOS], _jacobian_top(rot, rd, dt)], dim=-1)  # (..., 2, 8)
+    top = torch.cat([eye[..., :_NPOS, :_NPOS], _jacobian_top(rot, rd, dt, n)], dim=-1)  # (..., 2, n)
     return torch.cat([top, eye[..., _NPOS:, :]], dim=-2)
 
 
 def _apply_jacobian(g: Tensor, m: Tensor, dt: float) -> Tensor:
     """``F @ m`` for ``F`` = [[I, G], [0, I + dt E]] without the dense 8x8 product; ``m`` (..., 8, n)."""
-    src, has_rate = _constants(m.dtype, m.device)
+    src, has_rate = _constants(m.shape[-2], m.dtype, m.device)
     top = m[..., :_NPOS, :] + g @ m[..., _NPOS:, :]  # (..., 2, n)
-    bottom = m[..., _NPOS:, :] + (dt * has_rate) * m.index_select(-2, src)  # (..., 6, n)
+    bottom = m[..., _NPOS:, :] + (dt * has_rate) * m.index_select(-2, src)  # (..., n - 2, n)
     return torch.cat([top, bottom], dim=-2)
 
 
@@ -160,7 +167,7 @@ def predict(x: Tensor, P: Tensor, Q: Tensor, dt_s: float) -> tuple[Tensor, Tenso
     """
     dt = float(dt_s)
     rot, rd = _rotation_terms(x, dt)
-    g = _jacobian_top(rot, rd, dt)
+    g = _jacobian_top(rot, rd, dt, x.shape[-1])
     fp = _apply_jacobian(g, P, dt)
     p_new = _apply_jacobian(g, fp.transpose(-1, -2), dt) + Q
     x_new = torch.cat([x[..., EkfState.POS] + rd, _linear_part(x, dt)], dim=-1)
@@ -219,6 +226,62 @@ def update(x: Tensor, P: Tensor, z: Tensor, z_var: Tensor) -> tuple[Tensor, Tens
     ap = P - k @ hp
     p_new = ap - (ap.index_select(-1, idx) - k * z_var.unsqueeze(-2)) @ k_t
     return x_new, symmetrize(p_new)
+
+
+def update_linear(x: Tensor, P: Tensor, h: Tensor, innovation: Tensor, meas_var: Tensor) -> tuple[Tensor, Tensor]:
+    """Kalman update with a dense ``H`` (B, m, n) (the twin of :func:`numpy_ekf.update_linear`), Joseph form."""
+    hp = h @ P  # (B, m, n)
+    s = hp @ h.transpose(-1, -2) + torch.diag_embed(meas_var)
+    chol = cholesky_jittered(s)
+    k_t = torch.cholesky_solve(hp, chol)  # (B, m, n)
+    k = k_t.transpose(-1, -2)
+    x_new = x + (k * innovation.unsqueeze(-2)).sum(-1)
+    a = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device) - k @ h
+    p_new = a @ P @ a.transpose(-1, -2) + (k * meas_var.unsqueeze(-2)) @ k_t
+    return x_new, symmetrize(p_new)
+
+
+def update_model_calibrated(x: Tensor, P: Tensor, z: Tensor, z_var: Tensor) -> tuple[Tensor, Tensor]:
+    """The model's z (B, 5) in the calibrated layout (``omega_z`` carries the model bias); x (B, 11)."""
+    h = torch.as_tensor(numpy_ekf.model_measurement_matrix(), dtype=x.dtype, device=x.device)
+    innovation = z - x @ h.T
+    return update_linear(x, P, h.expand(x.shape[0], *h.shape), innovation, z_var)
+
+
+def cue_measurement(x: Tensor, yaw_rate: Tensor, wheel_speed: Tensor) -> tuple[Tensor, Tensor]:
+    """Both raw cues (B,) each: innovation (B, 2) and Jacobian (B, 2, 11), as :func:`numpy_ekf.cue_measurement`."""
+    b = x.shape[0]
+    h = x.new_zeros(b, 2, FULL_DIM)
+    k = x[:, CalState.WHEEL_SCALE.start]
+    vx = x[:, _VX]
+    h[:, 0, _OMEGA] = 1.0
+    h[:, 0, CalState.YAW_RATE_OFFSET.start] = 1.0
+    h[:, 1, _VX] = 1.0 + k
+    h[:, 1, CalState.WHEEL_SCALE.start] = vx
+    innovation = torch.stack([yaw_rate - (x[:, _OMEGA] + x[:, CalState.YAW_RATE_OFFSET.start]),
+                              wheel_speed - (1.0 + k) * vx], dim=-1)
+    return innovation, h
+
+
+def run_filter_calibrated(x0: Tensor, P0: Tensor, z: Tensor, z_var: Tensor, cues: Tensor, cue_var: Tensor,
+                          Q: Tensor, dt_s: float = schema.DT_S) -> tuple[Tensor, Tensor]:
+    """The calibrated filter over a batch: each step predict, model z update, raw-cue update.
+
+    ``x0`` (B, 11), ``P0`` (B, 11, 11), ``z``/``z_var`` (B, T, 5), ``cues``/``cue_var`` (B, T, 2)
+    ``[CAN yaw rate rad/s, rear-axle wheel speed m/s]``, ``Q`` (11, 11). The first step updates
+    without predicting. Returns ``x`` (B, T, 11) and ``P`` (B, T, 11, 11).
+    """
+    x, P = x0, P0
+    xs, ps = [], []
+    for t in range(z.shape[1]):
+        if t > 0:
+            x, P = predict(x, P, Q, dt_s)
+        x, P = update_model_calibrated(x, P, z[:, t], z_var[:, t])
+        innovation, h = cue_measurement(x, cues[:, t, 0], cues[:, t, 1])
+        x, P = update_linear(x, P, h, innovation, cue_var[:, t])
+        xs.append(x)
+        ps.append(P)
+    return torch.stack(xs, dim=1), torch.stack(ps, dim=1)
 
 
 def run_filter(
