@@ -125,9 +125,42 @@ def test_physics_guard_bounds_what_the_filter_consumes(tmp_path, drive):
 
     w = kinematic_weights()
     w[:, schema.Z.V_X] *= 4.0  # a model that overestimates speed 4x: up to ~80 m/s
-    loc = StreamingLocalizer(OnnxModel(make_kinematic_model(tmp_path / "fast.onnx", weights=w)))
+    # calibration off: the raw wheel-speed cue would pull v_x back on its own; this isolates the guard
+    loc = StreamingLocalizer(OnnxModel(make_kinematic_model(tmp_path / "fast.onnx", weights=w)),
+                             LocalizerConfig(calibration=False))
     traj = loc.run_arrays(drive.onboard, gt_state(drive, L - 1), start_index=L - 1)
     fast = 4.0 * drive.onboard[L:, 5:9].mean(axis=1) > schema.V_MAX_MPS
     assert fast.any() and traj.guard_fired[L:][fast].all() and not traj.guard_fired[L:][~fast].any()
     assert np.nanmax(traj.x[:, EkfState.VEL.start]) < schema.V_MAX_MPS + 0.5
     assert loc.guard_stats.n_predictions == len(drive) - L + 1 and loc.guard_stats.n_fired == fast.sum()
+
+
+def test_a_stray_first_fix_is_replaced_by_the_next(model_path, drive):
+    """A spoofed fix 300 m off, then true ones: the start is provisional until two fixes agree with each
+    other and the wheels; the disagreeing second fix restarts the filter at once (not after 20 gated fixes)."""
+    loc = StreamingLocalizer(OnnxModel(model_path))
+    valid = np.ones(schema.NUM_SIGNALS, dtype=bool)
+    outs = []
+    for i in range(60):
+        t = i * schema.DT_S
+        fix = None
+        if i % 5 == 0:
+            x, y, psi = drive.pose_gt[i]
+            fix = GnssFix(t, float(x) + (300.0 if i == 0 else 0.0), float(y), psi_rad_to_heading_deg(float(psi)),
+                          True)
+        outs.append(loc.step(drive.onboard[i], valid, t, fix))
+    assert loc.filter.n_gnss_init_rejected == 1 and loc.filter.n_gnss_rejected == 0
+    assert outs[0].status is PoseStatus.GNSS_AIDED and abs(outs[0].x[0] - drive.pose_gt[0, 0] - 300.0) < 1.0
+    for o in outs[5:]:
+        assert np.hypot(*(o.x[:2] - drive.pose_gt[o.k, :2])) < 1.0
+    # the velocity comes from the wheel speeds at the restart
+    assert outs[5].x[schema.EkfState.VEL.start] == pytest.approx(drive.onboard[5, 5:9].mean(), abs=0.3)
+
+
+def test_gnss_waits_for_the_wheels(model_path, drive):
+    """A fix before any wheel speed (cold start): no start with v_x = 0 from nothing."""
+    loc = StreamingLocalizer(OnnxModel(model_path))
+    none_valid = np.zeros(schema.NUM_SIGNALS, dtype=bool)
+    x, y, psi = drive.pose_gt[0]
+    out = loc.step(drive.onboard[0], none_valid, 0.0, GnssFix(0.0, float(x), float(y), 0.0, True))
+    assert out.status is PoseStatus.INITIALISING and loc.ekf is None

@@ -46,7 +46,28 @@ def dr_summary(results: Sequence[WindowResult]) -> dict[str, float | int | None]
         "final_yaw_error_mean_deg": float(yaw_final.mean()),
         "distance_mean_m": float(np.mean([r.distance_m for r in results])),
         "guard_fire_rate": float(fired / used) if used else 0.0,
+        **coverage(results),
     }
+
+
+# share of a 2D Gaussian inside its k-sigma ellipse: 1 - exp(-k^2 / 2)
+COVERAGE_IDEAL_PCT = {k: 100.0 * (1.0 - math.exp(-k * k / 2.0)) for k in (1, 2, 3)}  # 39.3, 86.5, 98.9
+
+
+def coverage(results: Sequence[WindowResult]) -> dict[str, float | None]:
+    """Share of steps [%] whose 2D position error lies inside the reported 1/2/3-sigma ellipses.
+
+    A consistent filter gives 39 / 86 / 99 %; less means the reported uncertainty is too small.
+    The start row of each window (error 0 by construction) is left out.
+    """
+    m2 = [r.mahal2[1:] for r in results if r.mahal2 is not None]
+    if not m2:
+        return {}
+    m2 = np.concatenate(m2)
+    m2 = m2[np.isfinite(m2)]
+    if not m2.size:
+        return {}
+    return {f"coverage_{k}sigma_pct": float(100.0 * np.mean(m2 <= k * k)) for k in (1, 2, 3)}
 
 
 def drift_curves(results: Sequence[WindowResult]) -> dict[str, np.ndarray]:

@@ -47,6 +47,7 @@ class ModelSpec:
     guard: bool = True
     const_var: tuple[float, ...] | None = None
     q_scale: float = 1.0
+    calibration: bool = False  # the filter's calibration states and raw cues (runtime/filter.py)
 
     def __post_init__(self) -> None:
         if self.kind not in ("onnx", "osd"):
@@ -75,10 +76,15 @@ class WindowTask:
     pose_gt: np.ndarray
     mu: float
     bias: StandstillBias
+    # deployment protocol: GNSS-aided rows before the outage (onboard has them after the history rows;
+    # their true pose (preroll, 3) and z (preroll, 5) make the fixes and the start state)
+    preroll: int = 0
+    pre_pose_gt: np.ndarray | None = None
+    pre_z_gt: np.ndarray | None = None
 
     @property
     def key(self) -> str:
-        return f"{self.split}/{self.drive}@{self.start}"
+        return f"{self.split}/{self.drive}@{self.start}" + (f"+{self.preroll}" if self.preroll else "")
 
     @property
     def distance_m(self) -> float:
@@ -100,6 +106,8 @@ class WindowResult:
     z: np.ndarray
     guard_fired: int = 0
     model_steps: int = 0
+    mahal2: np.ndarray | None = None  # (n,) squared Mahalanobis distance of the 2D position error
+    cal: np.ndarray | None = None  # (3,) calibration states at the outage start (NaN when off)
 
     @property
     def rmse_m(self) -> float:
@@ -116,16 +124,19 @@ class WindowResult:
 
 
 def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: int = schema.WINDOW_LEN,
-                max_windows: int | None = None) -> list[WindowTask]:
+                max_windows: int | None = None, preroll_s: float = 0.0) -> list[WindowTask]:
     """Non-overlapping dead-reckoning windows of ``split`` (``val``, ``test`` or ``snow``).
 
     A window needs ``window_len - 1`` rows of history before its start; the first window of a
     segment starts at ``max(segment start, window_len - 1)``. ``max_windows`` caps the count
-    per segment (None: all).
+    per segment (None: all). ``preroll_s`` > 0 (the deployment protocol): each window is preceded
+    by that much GNSS-aided driving, whose rows (and history before them) may reach back before
+    the segment (onboard signals a car would have had; their ground truth only makes the fixes).
     """
     from prml2_edge.data.datasets import split_drive
 
     steps = int(round(window_s / schema.DT_S))
+    pre = int(round(preroll_s / schema.DT_S))
     hist = window_len - 1
     tasks: list[WindowTask] = []
     for drive, role in zip(dataset.drives, dataset.roles(), strict=True):
@@ -140,16 +151,50 @@ def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: 
         else:
             continue
         mu = float(drive.meta.get("mu", 1.0))
-        starts = list(range(max(a, hist), b - steps + 1, steps))
+        starts = list(range(max(a, hist + pre), b - steps + 1, steps))
         if max_windows is not None:
             starts = starts[:max_windows]
         for start in starts:
             # OSD biases from standstill before the window (causal), else from the whole drive
             bias = drive_bias(drive.onboard[:start], drive.onboard)
             sl = slice(start, start + steps)
-            tasks.append(WindowTask(split, drive.name, start, hist, drive.onboard[start - hist : start + steps],
-                                    drive.t_s[sl], drive.z_gt[sl], drive.pose_gt[sl], mu, bias))
+            ps = slice(start - pre, start)
+            tasks.append(WindowTask(split, drive.name, start, hist,
+                                    drive.onboard[start - pre - hist : start + steps],
+                                    drive.t_s[sl], drive.z_gt[sl], drive.pose_gt[sl], mu, bias, pre,
+                                    drive.pose_gt[ps] if pre else None, drive.z_gt[ps] if pre else None))
     return tasks
+
+
+# Deployment protocol (method.md deviation, README): fixes as a consumer receiver gives them.
+GNSS_RATE_HZ = 10.0
+GNSS_POS_STD_M = 1.5
+GNSS_HEADING_STD_DEG = 2.0
+GNSS_HEADING_MIN_SPEED_MPS = 2.0
+
+
+def simulated_fixes(task: WindowTask) -> dict[int, object]:
+    """GNSS fixes for the pre-roll of a deployment task, by row index of ``task.onboard``: 10 Hz, position
+    noise 1.5 m per axis, heading (2 deg) only while moving; deterministic per task."""
+    import zlib
+
+    from prml2_edge.runtime.decode import GnssFix
+    from prml2_edge.runtime.initial_pose import psi_rad_to_heading_deg
+
+    if not task.preroll:
+        return {}
+    rng = np.random.default_rng(zlib.crc32(task.key.encode()))
+    every = int(round(schema.SAMPLE_RATE_HZ / GNSS_RATE_HZ))
+    fixes = {}
+    for j in range(every, task.preroll, every):  # row 0 is the start pose itself
+        x, y, psi = task.pre_pose_gt[j]
+        noise = rng.normal(0.0, GNSS_POS_STD_M, 2)
+        moving = float(np.hypot(*task.pre_z_gt[j, Z.VEL])) >= GNSS_HEADING_MIN_SPEED_MPS
+        heading = psi_rad_to_heading_deg(float(psi) + math.radians(rng.normal(0.0, GNSS_HEADING_STD_DEG)))
+        fixes[task.history + j] = GnssFix(t_s=float((task.history + j) * schema.DT_S), x_m=float(x + noise[0]),
+                                          y_m=float(y + noise[1]), heading_deg=heading if moving else None,
+                                          valid=True)
+    return fixes
 
 
 # ---- running one window (worker side) ------------------------------------------------------------
@@ -185,41 +230,69 @@ def process_noise(model, q_scale: float = 1.0) -> np.ndarray:
     return q * float(q_scale)
 
 
+def _localizer_config(spec: ModelSpec, task: WindowTask, stride: int):
+    from prml2_edge.runtime.localizer import LocalizerConfig
+
+    return LocalizerConfig(stride=stride, mu=task.mu, fuse_gnss=bool(task.preroll), calibration=spec.calibration,
+                           gnss_pos_std_m=GNSS_POS_STD_M, gnss_heading_std_deg=GNSS_HEADING_STD_DEG,
+                           gnss_heading_min_speed_mps=GNSS_HEADING_MIN_SPEED_MPS)
+
+
+def _start_state(task: WindowTask) -> np.ndarray:
+    pose, z = (task.pre_pose_gt[0], task.pre_z_gt[0]) if task.preroll else (task.pose_gt[0], task.z_gt[0])
+    x0 = np.zeros(EkfState.DIM)
+    x0[EkfState.POS] = pose[:2]
+    x0[EkfState.YAW] = pose[2]
+    x0[list(schema.Z_TO_EKF_INDEX)] = z
+    return x0
+
+
 def run_window(spec: ModelSpec, task: WindowTask, stride: int = 1) -> WindowResult:
-    """Dead-reckon ``task`` with ``spec`` through :meth:`StreamingLocalizer.run_arrays`."""
+    """Dead-reckon ``task`` with ``spec`` through :meth:`StreamingLocalizer.run_arrays`.
+
+    With a pre-roll (deployment protocol) the filter starts at the true pose ``preroll`` rows before the
+    outage and fuses :func:`simulated_fixes` until it; everything reported is from the outage start on.
+    """
     from prml2_edge.evaluation.models import RecordingModel
-    from prml2_edge.runtime.localizer import LocalizerConfig, StreamingLocalizer
+    from prml2_edge.runtime.localizer import StreamingLocalizer
 
     model = RecordingModel(build_model(spec, task.bias))
-    loc = StreamingLocalizer(model, LocalizerConfig(stride=stride, mu=task.mu, fuse_gnss=False),
-                             process_noise=process_noise(model, spec.q_scale))
+    loc = StreamingLocalizer(model, _localizer_config(spec, task, stride), process_noise=process_noise(model,
+                                                                                                      spec.q_scale))
     if not spec.guard:
         loc.a_max_mps2 = NO_GUARD_A_MAX_MPS2  # ablation: no friction-circle bound (speed/yaw-rate bounds stay)
-    x0 = np.zeros(EkfState.DIM)
-    x0[EkfState.POS] = task.pose_gt[0, :2]
-    x0[EkfState.YAW] = task.pose_gt[0, 2]
-    x0[list(schema.Z_TO_EKF_INDEX)] = task.z_gt[0]
-    traj = loc.run_arrays(task.onboard, x0, start_index=task.history)
-    h = task.history
+    traj = loc.run_arrays(task.onboard, _start_state(task), start_index=task.history, gnss=simulated_fixes(task))
+    h = task.history + task.preroll  # the outage starts here
     pose = traj.pose[h:]
-    pos_err = np.hypot(pose[:, 0] - task.pose_gt[:, 0], pose[:, 1] - task.pose_gt[:, 1])
+    d = pose[:, :2] - task.pose_gt[:, :2]
+    pos_err = np.hypot(d[:, 0], d[:, 1])
     yaw_err = np.asarray(wrap_angle(pose[:, 2] - task.pose_gt[:, 2]), dtype=np.float64)
-    # model outputs the EKF consumed: call i is the window ending at row h + i * stride (rows all valid)
+    mahal2 = mahalanobis2(d, traj.pos_cov[h:])
+    # model outputs the EKF consumed: call i is the window ending at row history + i * stride (rows all valid)
     z = np.full((len(pose), schema.NUM_STATES), np.nan)
     if model.records:
-        idx = np.array([r[0] for r in model.records]) * stride
+        idx = np.array([r[0] for r in model.records]) * stride - task.preroll
         mean = np.array([r[1] for r in model.records])
         var = np.array([r[2] for r in model.records])
         if spec.guard:
             mean = physics_guard(mean, var, schema.accel_limit_mps2(task.mu))[0]
-        ok = idx < len(pose)
+        ok = (idx >= 0) & (idx < len(pose))
         z[idx[ok]] = mean[ok]
         if spec.kind == "osd":
             from prml2_edge.evaluation.models import OSD_MISSING
 
             z[:, list(OSD_MISSING)] = np.nan
     return WindowResult(spec.name, task.key, task.split, pose, pos_err, yaw_err, task.distance_m, z,
-                        int(traj.guard_fired[h:].sum()), int(traj.model_used[h:].sum()))
+                        int(traj.guard_fired[h:].sum()), int(traj.model_used[h:].sum()), mahal2, traj.cal[h])
+
+
+def mahalanobis2(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Squared Mahalanobis distances (n,) of 2D errors (n, 2) under covariances (n, 2, 2) (NaN where singular)."""
+    a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
+    det = a * c - b * b
+    with np.errstate(all="ignore"):
+        m2 = (c * err[:, 0] ** 2 - 2 * b * err[:, 0] * err[:, 1] + a * err[:, 1] ** 2) / det
+    return np.where(det > 0, m2, np.where(np.hypot(err[:, 0], err[:, 1]) == 0, 0.0, np.nan))
 
 
 def _run_pair(args: tuple[ModelSpec, WindowTask, int]) -> WindowResult:

@@ -1,11 +1,9 @@
 """Streaming localisation: one code path for the live runtime and offline evaluation.
 
-method.md "Streaming inference": a new window every ``stride`` 50 Hz steps; each window's
-decoder outputs cover its last L - H steps; at every step the EKF consumes the newest
-available output for that step (with stride 1: the last decoder output of the newest
-window), after the physics guard. While no valid output is available (the first L - 1 steps,
-a failed inference, a window with too many invalid rows, an invalid current row) the EKF
-predicts only. GNSS fixes, when given, are fused as pose measurements.
+The pipeline the README draws, one stage a module:
+:mod:`~prml2_edge.runtime.estimator` (window -> model -> physics guard -> z) feeds
+:mod:`~prml2_edge.runtime.filter` (EKF with calibration states, raw cues, standstill, GNSS);
+:class:`StreamingLocalizer` runs the two per 50 Hz row and reports the pose status.
 
 :class:`StreamingLocalizer` works on plain arrays: the CAN pipeline feeds it assembled rows
 (:meth:`StreamingLocalizer.step`), ``prml2 evaluate`` feeds it a drive
@@ -16,30 +14,22 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 
 from prml2_edge import schema
-from prml2_edge.ekf.numpy_ekf import Ekf, StepStatus, default_process_noise, wrap_angle
-from prml2_edge.guard import GuardStats, physics_guard
+from prml2_edge.ekf.numpy_ekf import StepStatus, default_process_noise, wrap_angle
 from prml2_edge.runtime.decode import GnssFix
-from prml2_edge.runtime.initial_pose import InitialPose, initial_state
+from prml2_edge.runtime.estimator import Estimate, Estimator, Model
+from prml2_edge.runtime.filter import PoseFilter
+from prml2_edge.runtime.initial_pose import InitialPose
 from prml2_edge.runtime.latency import LatencyRecorder
-from prml2_edge.runtime.status import InferenceStatus, PoseStatus
-from prml2_edge.runtime.window import Window
-from prml2_edge.schema import EkfState
+from prml2_edge.runtime.status import PoseStatus
+from prml2_edge.schema import CalState, EkfState
 
-
-class Model(Protocol):
-    """What the localiser needs from a model (:class:`prml2_edge.runtime.inference.OnnxModel`)."""
-
-    window_len: int
-    mean: np.ndarray  # (R, 5) after a successful step, the newest R decoder steps; the last row is used
-    var: np.ndarray  # (R, 5)
-
-    def step(self, window: np.ndarray) -> InferenceStatus: ...
+__all__ = ["LocalizerConfig", "Model", "StepOutput", "StreamingLocalizer", "Trajectory"]
 
 
 @dataclass(frozen=True)
@@ -63,6 +53,26 @@ class LocalizerConfig:
     # anyway, so a filter that really is off is pulled back.
     gnss_gate_chi2: float = 16.0
     gnss_gate_max_rejects: int = 20
+    # GNSS start-up: the first fix becomes the pose only when the next one (within gnss_init_max_gap_s)
+    # agrees with it and with the wheel speeds: |distance - mean wheel speed * dt| within
+    # gnss_gate_sigma * sqrt(2) * gnss_pos_std_m + gnss_init_speed_tol_mps * dt.
+    gnss_init_check: bool = True
+    gnss_init_max_gap_s: float = 1.0
+    gnss_init_speed_tol_mps: float = 2.0
+    gnss_gate_sigma: float = 4.0
+    # Self-calibration (runtime/filter.py): calibration states, raw cues, standstill updates.
+    calibration: bool = True
+    # CAN yaw-rate cue noise: quantisation (ReV-StED 1.28 deg/s -> 0.37 deg/s rms) and slow quantisation
+    # error over the 50 Hz steps, which are correlated: inflated to 0.8 deg/s.
+    yaw_cue_std_radps: float = 0.8 * schema.DEG_TO_RAD
+    wheel_cue_std_mps: float = 0.05  # rear-axle mean speed: 0.05 km/h quantisation, slip, v_y and lever arms
+    cue_min_speed_mps: float = 1.0  # below this the ABS sensors read 0: no wheel-speed cue
+    standstill_hold_s: float = 0.5  # every wheel at 0 (and the speedometer) for this long: standstill
+    standstill_std_mps: float = 0.02
+    standstill_yaw_std_radps: float = 0.001
+    cal_yaw_offset_psd: float = 2.2e-11  # random walks of the calibration states (ekf.numpy_ekf.CalibrationNoise)
+    cal_wheel_scale_psd: float = 1.7e-9
+    cal_model_bias_psd: float = 2e-6
 
     def __post_init__(self) -> None:
         if self.stride < 1:
@@ -101,6 +111,10 @@ class StepOutput:
     z: np.ndarray | None = None  # (5,) guarded model output used at this step
     z_var: np.ndarray | None = None
     bus_silent: bool = False  # no CAN frame at all for more than the assembler's bus_silent_s
+    pos_cov: np.ndarray | None = None  # (2, 2) position covariance [m^2], world frame
+    cal: np.ndarray | None = None  # (3,) calibration states (schema.CalState), when on
+    cues_used: bool = False
+    standstill: bool = False
 
     def record(self) -> dict:
         """A flat, JSON-ready dict (non-finite numbers become None)."""
@@ -121,6 +135,10 @@ class StepOutput:
         rec["degraded"] = self.degraded
         rec["bus_silent"] = self.bus_silent
         rec["ekf_status"] = None if self.ekf_status is None else self.ekf_status.name
+        if self.cal is not None:
+            for name, value in zip(CalState.NAMES, self.cal, strict=True):
+                rec[name] = num(value)
+            rec["standstill"] = self.standstill
         rec["valid"] = {n: bool(v) for n, v in zip(schema.SIGNAL_NAMES, self.valid, strict=True)}
         return rec
 
@@ -140,6 +158,8 @@ class Trajectory:
     status: np.ndarray
     model_used: np.ndarray
     guard_fired: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    pos_cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)))  # (N, 2, 2) [m^2]
+    cal: np.ndarray = field(default_factory=lambda: np.zeros((0, CalState.DIM)))  # (N, 3), NaN when off
 
     @property
     def pose(self) -> np.ndarray:
@@ -150,7 +170,7 @@ class Trajectory:
 
 
 class StreamingLocalizer:
-    """Window -> model -> physics guard -> EKF (+ GNSS fusion), one 50 Hz row per :meth:`step`.
+    """Estimator (window -> model -> physics guard) then filter (EKF, cues, GNSS), one 50 Hz row per :meth:`step`.
 
     Parameters
     ----------
@@ -162,7 +182,7 @@ class StreamingLocalizer:
         EKF ``Q`` (8, 8) for one step; default: the model's metadata ``ekf_process_noise`` when
         present, else :func:`prml2_edge.ekf.numpy_ekf.default_process_noise`.
     initial_pose:
-        Where to start; None waits for the first valid GNSS fix (status ``INITIALISING``).
+        Where to start; None waits for GNSS (status ``INITIALISING``).
     latency:
         Records ``infer``, ``guard`` and ``filter`` durations when given.
     """
@@ -174,84 +194,53 @@ class StreamingLocalizer:
         self.config = config or LocalizerConfig()
         self.dt_s = float(dt_s)
         if process_noise is None:
-            meta_q = getattr(getattr(model, "metadata", None), "ekf_process_noise", None)
-            process_noise = np.asarray(meta_q, dtype=np.float64) if meta_q is not None else \
-                default_process_noise(self.dt_s)
-        self.process_noise = np.asarray(process_noise, dtype=np.float64)
-        self.initial_pose = initial_pose
+            process_noise = getattr(getattr(model, "metadata", None), "ekf_process_noise", None)
+        if process_noise is None:
+            process_noise = default_process_noise(self.dt_s)
         self.latency = latency
-        self.a_max_mps2 = schema.accel_limit_mps2(self.config.mu)
-        self.guard_stats = GuardStats()
-        self.window = Window(model.window_len)
-        # the newest window's newest decoder output, guarded: the only one ever consumed (see _feed)
-        self._z_mean = np.zeros(schema.NUM_STATES)
-        self._z_var = np.ones(schema.NUM_STATES)
-        self._fired = False
+        cfg = self.config
+        self.estimator = Estimator(model, cfg.stride, cfg.max_invalid_fraction, schema.accel_limit_mps2(cfg.mu),
+                                   latency)
+        self.filter = PoseFilter(cfg, process_noise, initial_pose, self.dt_s)
         self.reset()
+
+    # the stages' parts that callers read or set (evaluation, the pipeline's summary)
+    @property
+    def a_max_mps2(self) -> float:
+        return self.estimator.a_max_mps2
+
+    @a_max_mps2.setter
+    def a_max_mps2(self, value: float) -> None:
+        self.estimator.a_max_mps2 = float(value)
+
+    @property
+    def ekf(self):
+        return self.filter.ekf
+
+    @property
+    def initial_pose(self) -> InitialPose | None:
+        return self.filter.initial_pose
+
+    @property
+    def guard_stats(self):
+        return self.estimator.guard_stats
 
     def reset(self) -> None:
         """Back to the state before the first row (window empty, filter not started)."""
-        self.window.clear()
-        self.ekf: Ekf | None = None
+        self.estimator.reset()
+        self.filter.reset()
         self.k = -1
-        self._inf_count = -1  # window.count at the last inference; -1: none yet
-        self._output_ok = False
-        self._last_abs_t: float | None = None  # last GNSS fix or the start
-        self._last_fix_t: float | None = None
-        self._gnss_rejects_in_row = 0
-        self.n_gnss_rejected = 0  # fixes refused by the innovation gate
-        self.n_inferences = 0
         self.n_model_used = 0
-        self.n_inference_failures = 0
         self.status_counts = [0] * len(PoseStatus)
 
-    @property
-    def started(self) -> bool:
-        return self.ekf is not None
+    def restore_calibration(self, cal: np.ndarray, cal_cov: np.ndarray) -> None:
+        """Begin every start from this calibration ``(3,)`` / ``(3, 3)`` (a restored state file)."""
+        self.filter.calibration0 = (np.asarray(cal, dtype=np.float64), np.asarray(cal_cov, dtype=np.float64))
+        if self.filter.ekf is not None and self.filter.calibrated:
+            self.filter.ekf.set_calibration(*self.filter.calibration0)
 
-    def start(self, x0: np.ndarray, P0: np.ndarray, t_s: float) -> None:
-        """Start (or restart) the EKF at state ``x0`` (8,), covariance ``P0`` (8, 8), at time ``t_s`` [s]."""
-        self.ekf = Ekf(x0, P0, Q=self.process_noise, dt_s=self.dt_s)
-        self._last_abs_t = t_s
-
-    def _infer(self) -> bool:
-        t0 = time.perf_counter_ns()
-        status = self.model.step(self.window.view())
-        t1 = time.perf_counter_ns()
-        self._inf_count = self.window.count
-        self.n_inferences += 1
-        if status is not InferenceStatus.SUCCESS:
-            self._output_ok = False
-            self.n_inference_failures += 1
-        else:
-            # Only the newest decoder step is ever consumed (held until the next window, see _feed), so only
-            # it is guarded and counted: the guard statistics are over used predictions.
-            mean, var, fired = physics_guard(self.model.mean[-1:], self.model.var[-1:], self.a_max_mps2)
-            self._z_mean, self._z_var, self._fired = mean[0], var[0], bool(fired[0])
-            self.guard_stats.update(fired)
-            self._output_ok = self.window.invalid_fraction <= self.config.max_invalid_fraction
-        if self.latency is not None:
-            self.latency.add("infer", t1 - t0)
-            self.latency.add("guard", time.perf_counter_ns() - t1)
-        return True
-
-    def _feed(self, values: np.ndarray, all_valid: bool, discontinuity: bool = False):
-        """Window, inference when due, and the output for this step: ``(inferred, z, z_var, guard_fired)``."""
-        if discontinuity:
-            self.window.clear()
-            self._inf_count = -1
-            self._output_ok = False
-        self.window.step(values, all_valid)
-        inferred = False
-        if self.window.full and (self._inf_count < 0 or self.window.count - self._inf_count >= self.config.stride):
-            inferred = self._infer()
-        if self._output_ok and all_valid and self._inf_count >= 0:
-            # Causal streaming: between windows (stride > 1) the newest window's newest output, the estimate
-            # for step k - offset, is held; older decoder rows describe older steps and are never used.
-            offset = self.window.count - self._inf_count
-            if offset < self.config.stride:
-                return inferred, self._z_mean, self._z_var, self._fired
-        return inferred, None, None, False
+    def calibration(self) -> tuple[np.ndarray, np.ndarray] | None:
+        return self.filter.calibration()
 
     def step(self, values: np.ndarray, valid: np.ndarray, t_s: float, gnss: GnssFix | None = None,
              discontinuity: bool = False, bus_silent: bool = False) -> StepOutput:
@@ -259,107 +248,39 @@ class StreamingLocalizer:
 
         ``bus_silent`` (the assembler's flag) is passed through to the output.
         """
-        out = self._step(values, valid, t_s, gnss, discontinuity)
-        out.bus_silent = bus_silent
-        return out
-
-    def _step(self, values: np.ndarray, valid: np.ndarray, t_s: float, gnss: GnssFix | None,
-              discontinuity: bool) -> StepOutput:
         self.k += 1
-        cfg = self.config
+        valid = np.asarray(valid, dtype=bool)
         all_valid = bool(np.all(valid))
-        inferred, z, z_var, guard_fired = self._feed(values, all_valid, discontinuity)
-        fix = gnss if (gnss is not None and gnss.valid and cfg.fuse_gnss) else None
-
-        ekf_status = None
-        gnss_fused = False
+        est = self.estimator.step(values, all_valid, discontinuity)
+        fix = gnss if (gnss is not None and gnss.valid and self.config.fuse_gnss) else None
         t_filter = time.perf_counter_ns()
-        if self.ekf is None:
-            start_pose = self.initial_pose
-            if start_pose is None and fix is not None:
-                start_pose = InitialPose.from_gnss(fix, cfg.gnss_pos_std_m, cfg.gnss_heading_std_deg)
-            if start_pose is None:
-                return self._output(t_s, None, inferred, False, False, False, valid, all_valid, z, z_var)
-            x0, p0 = initial_state(start_pose, values, valid)
-            self.start(x0, p0, t_s)
-            gnss_fused = fix is not None and start_pose.source == "gnss"
-            if gnss_fused:
-                self._last_fix_t = t_s
-        else:
-            ekf_status = self.ekf.step(z, z_var)
-            if fix is not None:
-                gnss_fused = self._fuse(fix, t_s)
-        model_used = ekf_status is StepStatus.SUCCESS
+        res = self.filter.step(values, valid, t_s, est, fix)
         if self.latency is not None:
             self.latency.add("filter", time.perf_counter_ns() - t_filter)
-        return self._output(t_s, ekf_status, inferred, model_used, guard_fired and model_used, gnss_fused, valid,
-                            all_valid, z if model_used else None, z_var if model_used else None)
+        out = self._output(t_s, res.ekf_status, est, res.model_used, res.gnss_fused, valid, all_valid)
+        out.bus_silent = bus_silent
+        out.cues_used, out.standstill = res.cues_used, res.standstill
+        return out
 
-    def _fuse(self, fix: GnssFix, t_s: float) -> bool:
-        cfg = self.config
-        x = self.ekf.x  # type: ignore[union-attr]
-        # Move the fix from its frame time to this row's time along the current velocity (<= one period).
-        lag_s = min(max(t_s - fix.t_s, 0.0), self.dt_s)
-        c, s = math.cos(x[EkfState.YAW.start]), math.sin(x[EkfState.YAW.start])
-        vx, vy = x[EkfState.VEL]
-        pos = np.array([fix.x_m + (c * vx - s * vy) * lag_s, fix.y_m + (s * vx + c * vy) * lag_s])
-        psi = fix.psi_rad
-        yaw_var = None
-        if psi is not None and math.hypot(vx, vy) >= cfg.gnss_heading_min_speed_mps:
-            psi += x[EkfState.OMEGA_Z.start] * lag_s
-            yaw_var = math.radians(cfg.gnss_heading_std_deg) ** 2
-        else:
-            psi = None
-        if not self._gate(pos, psi, yaw_var):
-            return False
-        if psi is not None and yaw_var is not None:
-            p = self.ekf.P  # type: ignore[union-attr]
-            d_psi = float(wrap_angle(psi - x[EkfState.YAW.start]))
-            if d_psi * d_psi > cfg.gnss_gate_chi2 * (p[EkfState.YAW.start, EkfState.YAW.start] + yaw_var):
-                psi = yaw_var = None  # position fine, heading implausible: fuse the position only
-        status = self.ekf.fuse_pose(pos, cfg.gnss_pos_std_m ** 2, psi, yaw_var)  # type: ignore[union-attr]
-        if status is StepStatus.SUCCESS:
-            self._last_fix_t = t_s
-            self._last_abs_t = t_s
-            return True
-        return False
-
-    def _gate(self, pos: np.ndarray, psi: float | None, yaw_var: float | None) -> bool:
-        """Innovation gate of a GNSS position (2,) [m]; False (and counted) when it is refused."""
-        cfg = self.config
-        p = self.ekf.P  # type: ignore[union-attr]
-        d = pos - self.ekf.x[EkfState.POS]  # type: ignore[union-attr]
-        s = p[EkfState.POS, EkfState.POS] + np.eye(2) * cfg.gnss_pos_std_m ** 2
-        with np.errstate(all="ignore"):
-            try:
-                m2 = float(d @ np.linalg.solve(s, d))
-            except np.linalg.LinAlgError:
-                m2 = math.inf
-        if math.isfinite(m2) and m2 <= cfg.gnss_gate_chi2:
-            self._gnss_rejects_in_row = 0
-            return True
-        self._gnss_rejects_in_row += 1
-        if self._gnss_rejects_in_row > cfg.gnss_gate_max_rejects and math.isfinite(m2):
-            self._gnss_rejects_in_row = 0
-            return True
-        self.n_gnss_rejected += 1
-        return False
-
-    def _output(self, t_s: float, ekf_status: StepStatus | None, inferred: bool, model_used: bool,
-                guard_fired: bool, gnss_fused: bool, valid: np.ndarray, all_valid: bool, z, z_var) -> StepOutput:
-        cfg = self.config
-        if self.ekf is None:
+    def _output(self, t_s: float, ekf_status: StepStatus | None, est: Estimate, model_used: bool,
+                gnss_fused: bool, valid: np.ndarray, all_valid: bool) -> StepOutput:
+        flt = self.filter
+        ekf = flt.ekf
+        pos_cov = cal = None
+        if ekf is None:
             x = np.full(EkfState.DIM, np.nan)
             pos_std = yaw_std = math.nan
             status = PoseStatus.INITIALISING
             gnss_recent = False
             outage = math.nan
         else:
-            x = self.ekf.x.copy()
+            x = ekf.x[: EkfState.DIM].copy()
             x[EkfState.YAW] = wrap_angle(x[EkfState.YAW])
-            pos_std, yaw_std = self.ekf.pose_std
-            gnss_recent = self._last_fix_t is not None and t_s - self._last_fix_t <= cfg.gnss_timeout_s + 1e-9
-            outage = t_s - self._last_abs_t if self._last_abs_t is not None else math.nan
+            pos_std, yaw_std = ekf.pose_std
+            pos_cov = ekf.P[EkfState.POS, EkfState.POS].copy()
+            cal = ekf.cal if ekf.calibration else None
+            gnss_recent = flt.gnss_recent(t_s)
+            outage = flt.outage_s(t_s)
             if not all_valid:
                 status = PoseStatus.DEGRADED
             elif gnss_recent:
@@ -370,12 +291,33 @@ class StreamingLocalizer:
                 status = PoseStatus.DEAD_RECKONING
         self.status_counts[status] += 1
         self.n_model_used += int(model_used)
-        gnss_outage = self.ekf is not None and self._last_fix_t is not None and not gnss_recent
-        return StepOutput(self.k, t_s, x, pos_std, yaw_std, status, ekf_status, model_used, inferred, guard_fired,
-                          gnss_fused, gnss_outage, outage, not all_valid, np.array(valid, dtype=bool), z, z_var)
+        gnss_outage = ekf is not None and flt.had_fix() and not gnss_recent
+        z, z_var = (est.z, est.z_var) if model_used else (None, None)
+        return StepOutput(self.k, t_s, x, pos_std, yaw_std, status, ekf_status, model_used, est.inferred,
+                          est.guard_fired and model_used, gnss_fused, gnss_outage, outage, not all_valid,
+                          valid.copy(), z, z_var, pos_cov=pos_cov, cal=cal)
+
+    # ---- counters the pipeline reports ------------------------------------------------------------
+
+    @property
+    def n_inferences(self) -> int:
+        return self.estimator.n_inferences
+
+    @property
+    def n_inference_failures(self) -> int:
+        return self.estimator.n_inference_failures
+
+    @property
+    def n_gnss_rejected(self) -> int:
+        return self.filter.n_gnss_rejected
+
+    def summary(self) -> dict:
+        """The estimator's and the filter's counters, as plain data."""
+        return {**self.estimator.summary(), "model_used_steps": self.n_model_used, **self.filter.summary()}
 
     def run_arrays(self, onboard: np.ndarray, x0: np.ndarray, P0: np.ndarray | None = None, start_index: int = 0,
-                   valid: np.ndarray | None = None, t_s: np.ndarray | None = None) -> Trajectory:
+                   valid: np.ndarray | None = None, t_s: np.ndarray | None = None,
+                   gnss: Mapping[int, GnssFix] | None = None) -> Trajectory:
         """Run a whole drive through the streaming path (what ``prml2 evaluate`` calls).
 
         Parameters
@@ -390,6 +332,8 @@ class StreamingLocalizer:
             (N, 9) bool validity (default all valid).
         t_s:
             (N,) timestamps [s] (default ``k * dt_s``).
+        gnss:
+            GNSS fixes by row index (fused at that row; the deployment protocol), default none.
 
         Returns
         -------
@@ -406,28 +350,34 @@ class StreamingLocalizer:
         valid_arr = np.ones((n, schema.NUM_SIGNALS), dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
         times = np.arange(n) * self.dt_s if t_s is None else np.asarray(t_s, dtype=np.float64)
         p0 = default_initial_covariance() if P0 is None else np.asarray(P0, dtype=np.float64)
-        saved_pose, self.initial_pose = self.initial_pose, None
+        fixes = gnss or {}
+        saved_pose, self.filter.initial_pose = self.filter.initial_pose, None
         self.reset()
         xs = np.full((n, EkfState.DIM), np.nan)
         pos_std = np.full(n, np.nan)
         yaw_std = np.full(n, np.nan)
+        pos_cov = np.full((n, 2, 2), np.nan)
+        cal = np.full((n, CalState.DIM), np.nan)
         status = np.zeros(n, dtype=np.int8)
         used = np.zeros(n, dtype=bool)
         fired = np.zeros(n, dtype=bool)
         try:
             for i in range(n):
                 if i == start_index:
-                    self.start(np.asarray(x0, dtype=np.float64), p0, float(times[i]))
+                    self.filter.start(np.asarray(x0, dtype=np.float64), p0, float(times[i]))
                     # the start row only feeds the window: x[start_index] is x0 itself
                     self.k += 1
                     ok = bool(valid_arr[i].all())
-                    inferred = self._feed(onboard[i], ok)[0]
-                    out = self._output(float(times[i]), None, inferred, False, False, False, valid_arr[i], ok,
-                                       None, None)
+                    est = self.estimator.step(onboard[i], ok)
+                    out = self._output(float(times[i]), None, est, False, False, valid_arr[i], ok)
                 else:
-                    out = self.step(onboard[i], valid_arr[i], float(times[i]))
+                    out = self.step(onboard[i], valid_arr[i], float(times[i]), fixes.get(i))
                 xs[i], pos_std[i], yaw_std[i] = out.x, out.pos_std_m, out.yaw_std_rad
                 status[i], used[i], fired[i] = out.status, out.model_used, out.guard_fired
+                if out.pos_cov is not None:
+                    pos_cov[i] = out.pos_cov
+                if out.cal is not None:
+                    cal[i] = out.cal
         finally:
-            self.initial_pose = saved_pose
-        return Trajectory(times, xs, pos_std, yaw_std, status, used, fired)
+            self.filter.initial_pose = saved_pose
+        return Trajectory(times, xs, pos_std, yaw_std, status, used, fired, pos_cov, cal)

@@ -1,0 +1,111 @@
+"""Estimator stage: window -> model -> physics guard -> the dynamic state z for this step.
+
+method.md "Streaming inference": a new window every ``stride`` 50 Hz steps; each window's
+decoder outputs cover its last L - H steps; at every step the filter consumes the newest
+available output for that step (with stride 1: the last decoder output of the newest window),
+after the physics guard. While no valid output is available (the first L - 1 steps, a failed
+inference, a window with too many invalid rows, an invalid current row) it gives none.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from prml2_edge import schema
+from prml2_edge.guard import GuardStats, physics_guard
+from prml2_edge.runtime.latency import LatencyRecorder
+from prml2_edge.runtime.status import InferenceStatus
+from prml2_edge.runtime.window import Window
+
+
+class Model(Protocol):
+    """What the estimator needs from a model (:class:`prml2_edge.runtime.inference.OnnxModel`)."""
+
+    window_len: int
+    mean: np.ndarray  # (R, 5) after a successful step, the newest R decoder steps; the last row is used
+    var: np.ndarray  # (R, 5)
+
+    def step(self, window: np.ndarray) -> InferenceStatus: ...
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The estimator's result for one step: the guarded z (5,) and its variances, or none."""
+
+    inferred: bool  # a window was run through the model at this step
+    z: np.ndarray | None = None
+    z_var: np.ndarray | None = None
+    guard_fired: bool = False
+
+
+class Estimator:
+    """Window, inference when due, physics guard; :meth:`step` once per 50 Hz row."""
+
+    def __init__(self, model: Model, stride: int, max_invalid_fraction: float, a_max_mps2: float,
+                 latency: LatencyRecorder | None = None) -> None:
+        self.model = model
+        self.stride = int(stride)
+        self.max_invalid_fraction = float(max_invalid_fraction)
+        self.a_max_mps2 = float(a_max_mps2)
+        self.latency = latency
+        self.guard_stats = GuardStats()
+        self.window = Window(model.window_len)
+        # the newest window's newest decoder output, guarded: the only one ever consumed (see step)
+        self._z_mean = np.zeros(schema.NUM_STATES)
+        self._z_var = np.ones(schema.NUM_STATES)
+        self._fired = False
+        self.reset()
+
+    def reset(self) -> None:
+        self.window.clear()
+        self._inf_count = -1  # window.count at the last inference; -1: none yet
+        self._output_ok = False
+        self.n_inferences = 0
+        self.n_inference_failures = 0
+
+    def _infer(self) -> None:
+        t0 = time.perf_counter_ns()
+        status = self.model.step(self.window.view())
+        t1 = time.perf_counter_ns()
+        self._inf_count = self.window.count
+        self.n_inferences += 1
+        if status is not InferenceStatus.SUCCESS:
+            self._output_ok = False
+            self.n_inference_failures += 1
+        else:
+            # Only the newest decoder step is ever consumed (held until the next window), so only it is
+            # guarded and counted: the guard statistics are over used predictions.
+            mean, var, fired = physics_guard(self.model.mean[-1:], self.model.var[-1:], self.a_max_mps2)
+            self._z_mean, self._z_var, self._fired = mean[0], var[0], bool(fired[0])
+            self.guard_stats.update(fired)
+            self._output_ok = self.window.invalid_fraction <= self.max_invalid_fraction
+        if self.latency is not None:
+            self.latency.add("infer", t1 - t0)
+            self.latency.add("guard", time.perf_counter_ns() - t1)
+
+    def step(self, values: np.ndarray, all_valid: bool, discontinuity: bool = False) -> Estimate:
+        """One row ``values`` (9,) into the window; the z to use at this step, if any."""
+        if discontinuity:
+            self.window.clear()
+            self._inf_count = -1
+            self._output_ok = False
+        self.window.step(values, all_valid)
+        inferred = False
+        if self.window.full and (self._inf_count < 0 or self.window.count - self._inf_count >= self.stride):
+            self._infer()
+            inferred = True
+        if self._output_ok and all_valid and self._inf_count >= 0:
+            # Causal streaming: between windows (stride > 1) the newest window's newest output, the estimate
+            # for step k - offset, is held; older decoder rows describe older steps and are never used.
+            if self.window.count - self._inf_count < self.stride:
+                return Estimate(inferred, self._z_mean, self._z_var, self._fired)
+        return Estimate(inferred)
+
+    def summary(self) -> dict:
+        g = self.guard_stats
+        return {"inferences": self.n_inferences, "inference_failures": self.n_inference_failures,
+                "guard": {"predictions": g.n_predictions, "fired": g.n_fired, "fire_rate": g.fire_rate}}

@@ -1,0 +1,272 @@
+"""Filter stage: the EKF with its calibration states, the raw cues, standstill, GNSS gate and fusion.
+
+Per 50 Hz step, in this order:
+
+1. predict;
+2. the model's z (from :mod:`prml2_edge.runtime.estimator`) as a pseudo-measurement, when there is one;
+3. with ``calibration`` on, the raw cues as measurements of their own, through the calibration
+   states (:class:`prml2_edge.schema.CalState`): the CAN yaw rate (``omega_z + offset``) and the
+   rear-axle wheel speed (``(1 + scale) v_x``, only above ``cue_min_speed_mps``: ABS sensors read 0
+   near standstill). The model's learned variance against the cues' fixed noise decides the
+   weighting step by step; the model's omega_z carries a bias state of its own, so over seconds the
+   heading follows the calibrated yaw rate and within them the model;
+4. standstill (every valid wheel speed 0 and the speedometer 0 for ``standstill_hold_s``): a
+   zero-velocity / zero-rotation update, which with the yaw-rate cue reveals its offset without GNSS;
+5. GNSS fixes: position, and heading while moving, behind an innovation gate.
+
+The filter starts from a given pose, or from a GNSS fix, never before a wheel speed or the
+speedometer is valid (the velocity is initialised from the wheels, not from nothing). A GNSS start
+is provisional until two consecutive fixes agree with each other and with the wheel speeds; a fix
+that disagrees restarts the filter from it, so a single stray or spoofed first frame is replaced at
+the next fix.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from prml2_edge import schema
+from prml2_edge.ekf.numpy_ekf import CalibrationNoise, CalibrationStd, Ekf, StepStatus, wrap_angle
+from prml2_edge.runtime.decode import GnssFix
+from prml2_edge.runtime.estimator import Estimate
+from prml2_edge.runtime.initial_pose import InitialPose, initial_state
+from prml2_edge.schema import EkfState
+
+_SIG = schema.SIGNAL_BY_NAME
+_YAW_RATE = _SIG["yaw_rate_radps"].index
+_SPEEDO = _SIG["speedometer_mps"].index
+_REAR = np.array([_SIG["wheel_speed_rl_mps"].index, _SIG["wheel_speed_rr_mps"].index])
+_WHEELS = np.array(schema.WHEEL_SPEED_INDICES)
+_YAW, _OMEGA, _VX = EkfState.YAW.start, EkfState.OMEGA_Z.start, EkfState.VEL.start
+
+
+@dataclass(frozen=True)
+class FilterStep:
+    """What the filter did at one step."""
+
+    ekf_status: StepStatus | None  # None: not started
+    model_used: bool
+    gnss_fused: bool
+    cues_used: bool = False
+    standstill: bool = False
+
+
+class PoseFilter:
+    """The EKF and everything fused into it; ``config`` is a :class:`~prml2_edge.runtime.localizer.LocalizerConfig`."""
+
+    def __init__(self, config, process_noise: np.ndarray, initial_pose: InitialPose | None = None,
+                 dt_s: float = schema.DT_S) -> None:
+        self.config = config
+        self.process_noise = np.asarray(process_noise, dtype=np.float64)
+        self.initial_pose = initial_pose
+        self.dt_s = float(dt_s)
+        # a restored calibration (cal (3,), cov (3, 3)) that every start begins from; None: the prior
+        self.calibration0: tuple[np.ndarray, np.ndarray] | None = None
+        self.reset()
+
+    def reset(self) -> None:
+        self.ekf: Ekf | None = None
+        self._last_abs_t: float | None = None  # last GNSS fix or the start
+        self._last_fix_t: float | None = None
+        self._gnss_rejects_in_row = 0
+        self._prev_fix: tuple[GnssFix, float] | None = None  # the last fix and the wheel speed then
+        self._confirmed = True  # a GNSS start is provisional until two consecutive fixes agree
+        self._still_since: float | None = None
+        self.n_gnss_rejected = 0  # fixes refused by the innovation gate
+        self.n_gnss_init_rejected = 0  # first fixes that the next fix or the wheels contradicted
+        self.n_standstill_updates = 0
+
+    @property
+    def calibrated(self) -> bool:
+        return bool(self.config.calibration)
+
+    def start(self, x0: np.ndarray, P0: np.ndarray, t_s: float) -> None:
+        """Start (or restart) the EKF at ``x0`` (8,), ``P0`` (8, 8) at ``t_s`` [s], with the calibration prior."""
+        cfg = self.config
+        self.ekf = Ekf(x0, P0, Q=self.process_noise, dt_s=self.dt_s, calibration=self.calibrated,
+                       cal_noise=CalibrationNoise(cfg.cal_yaw_offset_psd, cfg.cal_wheel_scale_psd,
+                                                  cfg.cal_model_bias_psd) if self.calibrated else None,
+                       cal_std=CalibrationStd() if self.calibrated else None)
+        if self.calibrated and self.calibration0 is not None:
+            self.ekf.set_calibration(*self.calibration0)
+        self._last_abs_t = t_s
+
+    # ---- one step -----------------------------------------------------------------------------------
+
+    def step(self, values: np.ndarray, valid: np.ndarray, t_s: float, est: Estimate,
+             fix: GnssFix | None) -> FilterStep:
+        if self.ekf is None or (fix is not None and not self._confirmed and not self._plausible(fix, values, valid)):
+            return self._try_start(values, valid, t_s, fix)
+        ekf_status = self.ekf.step(est.z, est.z_var)
+        model_used = ekf_status is StepStatus.SUCCESS
+        cues = standstill = False
+        if self.calibrated:
+            cues = self._cues(values, valid)
+            standstill = self._standstill(values, valid, t_s)
+        gnss_fused = fix is not None and self._fuse(fix, t_s)
+        return FilterStep(ekf_status, model_used, gnss_fused, cues, standstill)
+
+    def _try_start(self, values: np.ndarray, valid: np.ndarray, t_s: float, fix: GnssFix | None) -> FilterStep:
+        pose = self.initial_pose if self.ekf is None else None
+        if pose is None and fix is not None and self._wheels_known(valid):
+            pose = InitialPose.from_gnss(fix, self.config.gnss_pos_std_m, self.config.gnss_heading_std_deg)
+            self._confirmed = not self.config.gnss_init_check
+            self._prev_fix = (fix, self._wheel_speed(values, valid))
+        if pose is None:
+            return FilterStep(None, False, False)
+        x0, p0 = initial_state(pose, values, valid)
+        self.start(x0, p0, t_s)
+        gnss = pose.source == "gnss"
+        if gnss:
+            self._last_fix_t = t_s
+        return FilterStep(None, False, gnss)
+
+    @staticmethod
+    def _wheels_known(valid: np.ndarray) -> bool:
+        return bool(np.any(valid[_WHEELS]) or valid[_SPEEDO])
+
+    @staticmethod
+    def _wheel_speed(values: np.ndarray, valid: np.ndarray) -> float:
+        wheels = [i for i in _WHEELS if valid[i]]
+        return float(np.mean(values[wheels])) if wheels else float(values[_SPEEDO]) if valid[_SPEEDO] else 0.0
+
+    def _plausible(self, fix: GnssFix, values: np.ndarray, valid: np.ndarray) -> bool:
+        """While the GNSS start is provisional: does ``fix`` agree with the previous fix and the wheel speeds?
+
+        Agreeing confirms the start; disagreeing (counted) restarts the filter from ``fix``, so one stray or
+        spoofed first frame is replaced at the next fix instead of winning the gate after 20 refusals.
+        """
+        cfg = self.config
+        speed = self._wheel_speed(values, valid)
+        prev, self._prev_fix = self._prev_fix, (fix, speed)
+        if prev is None:
+            return True
+        last, last_speed = prev
+        dt = fix.t_s - last.t_s
+        if not 0.0 < dt <= cfg.gnss_init_max_gap_s:
+            return True  # nothing to compare with: keep the provisional start, check the next pair
+        moved = math.hypot(fix.x_m - last.x_m, fix.y_m - last.y_m)
+        expected = 0.5 * (speed + last_speed) * dt
+        slack = cfg.gnss_gate_sigma * math.sqrt(2.0) * cfg.gnss_pos_std_m + cfg.gnss_init_speed_tol_mps * dt
+        if abs(moved - expected) <= slack:
+            self._confirmed = True
+            return True
+        self.n_gnss_init_rejected += 1
+        self.ekf = None
+        return False
+
+    def _cues(self, values: np.ndarray, valid: np.ndarray) -> bool:
+        cfg = self.config
+        yaw = float(values[_YAW_RATE]) if valid[_YAW_RATE] else None
+        wheel = None
+        if valid[_REAR].all():
+            w = float(np.mean(values[_REAR]))
+            if w >= cfg.cue_min_speed_mps:
+                wheel = w
+        if yaw is None and wheel is None:
+            return False
+        status = self.ekf.update_cues(yaw, cfg.yaw_cue_std_radps ** 2, wheel,  # type: ignore[union-attr]
+                                      cfg.wheel_cue_std_mps ** 2)
+        return status is StepStatus.SUCCESS
+
+    def _standstill(self, values: np.ndarray, valid: np.ndarray, t_s: float) -> bool:
+        cfg = self.config
+        wheels_ok = valid[_WHEELS]
+        still = bool(wheels_ok.any() and np.all(values[_WHEELS][wheels_ok] <= 0.0)
+                     and (not valid[_SPEEDO] or values[_SPEEDO] <= 0.0))
+        if not still:
+            self._still_since = None
+            return False
+        if self._still_since is None:
+            self._still_since = t_s
+        if t_s - self._still_since + 1e-9 < cfg.standstill_hold_s:
+            return False
+        status = self.ekf.update_standstill(cfg.standstill_std_mps ** 2,  # type: ignore[union-attr]
+                                            cfg.standstill_yaw_std_radps ** 2)
+        self.n_standstill_updates += int(status is StepStatus.SUCCESS)
+        return status is StepStatus.SUCCESS
+
+    # ---- GNSS ---------------------------------------------------------------------------------------
+
+    def _fuse(self, fix: GnssFix, t_s: float) -> bool:
+        cfg = self.config
+        x = self.ekf.x  # type: ignore[union-attr]
+        # Move the fix from its frame time to this row's time along the current velocity (<= one period).
+        lag_s = min(max(t_s - fix.t_s, 0.0), self.dt_s)
+        c, s = math.cos(x[_YAW]), math.sin(x[_YAW])
+        vx, vy = x[EkfState.VEL]
+        pos = np.array([fix.x_m + (c * vx - s * vy) * lag_s, fix.y_m + (s * vx + c * vy) * lag_s])
+        psi = fix.psi_rad
+        yaw_var = None
+        if psi is not None and math.hypot(vx, vy) >= cfg.gnss_heading_min_speed_mps:
+            psi += x[_OMEGA] * lag_s
+            yaw_var = math.radians(cfg.gnss_heading_std_deg) ** 2
+        else:
+            psi = None
+        if not self._gate(pos):
+            return False
+        if psi is not None and yaw_var is not None:
+            p = self.ekf.P  # type: ignore[union-attr]
+            d_psi = float(wrap_angle(psi - x[_YAW]))
+            if d_psi * d_psi > cfg.gnss_gate_chi2 * (p[_YAW, _YAW] + yaw_var):
+                psi = yaw_var = None  # position fine, heading implausible: fuse the position only
+        status = self.ekf.fuse_pose(pos, cfg.gnss_pos_std_m ** 2, psi, yaw_var)  # type: ignore[union-attr]
+        if status is StepStatus.SUCCESS:
+            self._last_fix_t = t_s
+            self._last_abs_t = t_s
+            return True
+        return False
+
+    def _gate(self, pos: np.ndarray) -> bool:
+        """Innovation gate of a GNSS position (2,) [m]; False (and counted) when it is refused."""
+        cfg = self.config
+        p = self.ekf.P  # type: ignore[union-attr]
+        d = pos - self.ekf.x[EkfState.POS]  # type: ignore[union-attr]
+        s = p[EkfState.POS, EkfState.POS] + np.eye(2) * cfg.gnss_pos_std_m ** 2
+        with np.errstate(all="ignore"):
+            try:
+                m2 = float(d @ np.linalg.solve(s, d))
+            except np.linalg.LinAlgError:
+                m2 = math.inf
+        if math.isfinite(m2) and m2 <= cfg.gnss_gate_chi2:
+            self._gnss_rejects_in_row = 0
+            return True
+        self._gnss_rejects_in_row += 1
+        if self._gnss_rejects_in_row > cfg.gnss_gate_max_rejects and math.isfinite(m2):
+            self._gnss_rejects_in_row = 0
+            return True
+        self.n_gnss_rejected += 1
+        return False
+
+    # ---- reporting ----------------------------------------------------------------------------------
+
+    def gnss_recent(self, t_s: float) -> bool:
+        return self._last_fix_t is not None and t_s - self._last_fix_t <= self.config.gnss_timeout_s + 1e-9
+
+    def outage_s(self, t_s: float) -> float:
+        return t_s - self._last_abs_t if self._last_abs_t is not None else math.nan
+
+    def had_fix(self) -> bool:
+        return self._last_fix_t is not None
+
+    def calibration(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The current calibration estimate ``(cal (3,), cov (3, 3))``, or None (off, or not started)."""
+        if self.ekf is None or not self.calibrated:
+            return None
+        return self.ekf.cal, self.ekf.cal_cov
+
+    def summary(self) -> dict:
+        out = {"gnss_rejected": self.n_gnss_rejected, "gnss_init_rejected": self.n_gnss_init_rejected,
+               "ekf_resets": self.ekf.n_resets if self.ekf is not None else 0}
+        cal = self.calibration()
+        if cal is not None:
+            est, cov = cal
+            std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+            out["calibration"] = {
+                "yaw_rate_offset_dps": math.degrees(est[0]), "yaw_rate_offset_std_dps": math.degrees(std[0]),
+                "wheel_scale_pct": 100.0 * est[1], "wheel_scale_std_pct": 100.0 * std[1],
+                "model_omega_bias_dps": math.degrees(est[2]), "standstill_updates": self.n_standstill_updates}
+        return out
