@@ -68,12 +68,19 @@ class SinksConfig:
 
 
 @dataclass(frozen=True)
+class CalibrationConfig:
+    enabled: bool = True  # the filter's calibration states, raw yaw-rate / wheel cues, standstill updates
+    file: str | None = None  # state file: restored at start when it matches the vehicle, saved every minute
+
+
+@dataclass(frozen=True)
 class RuntimeConfig:
     can: CanConfig = field(default_factory=CanConfig)
     signals: SignalsConfig = field(default_factory=SignalsConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     initial_pose: InitialPoseConfig = field(default_factory=InitialPoseConfig)
     sinks: SinksConfig = field(default_factory=SinksConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
 
 
 _INITIAL_POSE_SOURCES = ("gnss", "config", "file")

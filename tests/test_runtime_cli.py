@@ -184,3 +184,23 @@ def test_deploy_config_with_flag_overrides(repo_root, files, tmp_path):
     pinned = replace(pinned, model=replace(pinned.model, sha256="0" * 64))
     with pytest.raises(ModelError, match="does not match the pinned"):
         build_pipeline(pinned)
+
+
+def test_replay_saves_the_calibration_and_the_next_run_restores_it(files, tmp_path, capsys, caplog):
+    root, model, _ = files
+    cal = tmp_path / "state" / "calibration.json"
+    args = ["replay", str(root / "drive.log"), "--model", str(model), "--calibration", str(cal), "--summary-json"]
+    assert main(args + [str(tmp_path / "s1.json")]) == 0
+    first = json.loads((tmp_path / "s1.json").read_text())["calibration"]
+    assert cal.is_file() and first["saves"] >= 1 and not first["restored"] and first["error"] is None
+    doc = json.loads(cal.read_text())
+    assert doc["vehicle"].startswith("prml2_onboard") and len(doc["cal"]) == 3
+    assert main(args + [str(tmp_path / "s2.json")]) == 0
+    assert json.loads((tmp_path / "s2.json").read_text())["calibration"]["restored"]
+    # a corrupt file: one warning line, the defaults, and the run still does its job
+    cal.write_text("{")
+    with caplog.at_level(logging.WARNING):
+        assert main(args + [str(tmp_path / "s3.json")]) == 0
+    assert sum("calibration file" in r.getMessage() for r in caplog.records) == 1
+    assert json.loads(cal.read_text())["format"] == "prml2-calibration"  # rewritten at the end
+    capsys.readouterr()

@@ -28,6 +28,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-snow", action="store_true", help="skip the snow (low-mu) drives")
     parser.add_argument("--no-tum", action="store_true", help="do not write TUM trajectory files")
     parser.add_argument("--no-plots", action="store_true", help="do not write PNG figures")
+    parser.add_argument("--calibration", choices=("off", "on", "both"), default="both",
+                        help="the filter's self-calibration (calibration states, raw yaw-rate and wheel cues): "
+                             "off, on, or both side by side as NAME and 'NAME +cal' (default both)")
+    parser.add_argument("--preroll-s", type=float, default=30.0, metavar="S",
+                        help="deployment protocol: every test window also after S s of GNSS-aided driving "
+                             "(10 Hz fixes, 1.5 m); 0 skips it (default 30)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -41,14 +47,23 @@ def run(args: argparse.Namespace) -> int:
             raise Prml2Error(f"{s.name}: model file {s.path} not found")
     metrics = evaluate(args.data, specs, args.out, stride=args.stride, jobs=args.jobs, ablation=args.ablation,
                        max_windows=args.max_windows, snow=not args.no_snow, tum=not args.no_tum,
-                       plots=not args.no_plots, window_s=args.window_s)
-    print(f"{'model':<28} {'dry RMSE [m]':>14} {'dry ME [m]':>12} {'drift %':>8} {'snow RMSE [m]':>14}")
+                       plots=not args.no_plots, window_s=args.window_s, calibration=args.calibration,
+                       preroll_s=args.preroll_s)
+    print(f"{'model':<28} {'dry RMSE [m]':>14} {'dry ME [m]':>12} {'drift %':>8} {'snow RMSE [m]':>14} "
+          f"{'deploy RMSE':>12} {'deploy drift %':>15} {'2σ / 3σ %':>12}")
     for name, m in metrics["models"].items():
         d = m["test"]["dead_reckoning_60s"]
         s = m.get("snow", {}).get("dead_reckoning_60s", {})
+        dep = m.get("deployment", {}).get("dead_reckoning_60s", {})
         snow = f"{s['rmse_mean_m']:.2f}" if s.get("n_windows") else "-"
         drift = d.get("drift_mean_pct")
+        dep_rmse = f"{dep['rmse_mean_m']:.2f}" if dep.get("n_windows") else "-"
+        dep_drift = f"{dep['drift_mean_pct']:.2f}" if dep.get("drift_mean_pct") is not None else "-"
+        cov = dep if dep.get("n_windows") else d
+        cover = (f"{cov['coverage_2sigma_pct']:.0f} / {cov['coverage_3sigma_pct']:.0f}"
+                 if "coverage_2sigma_pct" in cov else "-")
         print(f"{name:<28} {d['rmse_mean_m']:>14.2f} {d['me_mean_m']:>12.2f} "
-              f"{(f'{drift:.2f}' if drift is not None else '-'):>8} {snow:>14}")
+              f"{(f'{drift:.2f}' if drift is not None else '-'):>8} {snow:>14} {dep_rmse:>12} {dep_drift:>15} "
+              f"{cover:>12}")
     print(f"report: {Path(args.out) / 'report.md'} ({metrics['wall_s']:.0f} s)")
     return 0

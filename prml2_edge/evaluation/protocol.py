@@ -167,6 +167,7 @@ def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: 
 
 
 # Deployment protocol (method.md deviation, README): fixes as a consumer receiver gives them.
+DEPLOYMENT_PREROLL_S = 30.0  # GNSS-aided driving before each outage window [s]
 GNSS_RATE_HZ = 10.0
 GNSS_POS_STD_M = 1.5
 GNSS_HEADING_STD_DEG = 2.0

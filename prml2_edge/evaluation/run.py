@@ -10,6 +10,7 @@ from pathlib import Path
 
 from prml2_edge.evaluation.metrics import dr_summary, paired_comparison, z_rmse
 from prml2_edge.evaluation.protocol import (
+    DEPLOYMENT_PREROLL_S,
     DR_WINDOW_S,
     OSD_Q_SCALES,
     ModelSpec,
@@ -48,7 +49,8 @@ def _summaries(results: dict[str, list[WindowResult]], tasks: Sequence[WindowTas
 
 def evaluate(data: str | Path, specs: Sequence[ModelSpec], out_dir: str | Path, *, stride: int = 1, jobs: int = 1,
              ablation: str | None = None, max_windows: int | None = None, snow: bool = True, tum: bool = True,
-             plots: bool = True, progress: bool | None = None, window_s: float = DR_WINDOW_S) -> dict:
+             plots: bool = True, progress: bool | None = None, window_s: float = DR_WINDOW_S,
+             calibration: str = "both", preroll_s: float = DEPLOYMENT_PREROLL_S) -> dict:
     """Run the protocol and write ``report.md``, ``metrics.json``, PNG figures and TUM files to ``out_dir``.
 
     Parameters
@@ -61,6 +63,12 @@ def evaluate(data: str | Path, specs: Sequence[ModelSpec], out_dir: str | Path, 
         Name of the ONNX model for Table 3 (default: one named ``PRML2`` if present, else none).
     window_s:
         Dead-reckoning window [s] (the paper: 60).
+    calibration:
+        ``off`` (the paper's filter), ``on`` (calibration states and raw cues) or ``both``: every model
+        twice, the second named ``NAME +cal``, in the same run.
+    preroll_s:
+        Deployment protocol: each test window is also run after this much GNSS-aided driving
+        (10 Hz fixes, 1.5 m); 0 skips it.
     max_windows:
         At most this many 60 s windows per drive segment (None: all), for quick runs.
 
@@ -90,9 +98,12 @@ def evaluate(data: str | Path, specs: Sequence[ModelSpec], out_dir: str | Path, 
         raise ValueError(f"{data}: no {window_s:g} s validation windows to tune the noise on")
     if not test:
         raise ValueError(f"{data}: no {window_s:g} s test windows (need dry drives with ground truth)")
+    deployment = split_tasks(dataset, "test", window_s, max_windows=max_windows, preroll_s=preroll_s) \
+        if preroll_s > 0 else []
     n_osd = sum(s.kind == "osd" for s in specs)
+    n_var = len(specs) * (2 if calibration == "both" else 1)
     total = (len(val) * (1 + len(OSD_Q_SCALES)) * n_osd + (len(val) if target else 0)
-             + len(specs) * (len(test) + len(snow_tasks)) + (2 * len(test) if target else 0))
+             + n_var * (len(test) + len(snow_tasks) + len(deployment)) + (2 * len(test) if target else 0))
     bar = Progress(total, desc="evaluate", unit="win", enabled=progress)
 
     def tick(res: WindowResult) -> None:
@@ -101,10 +112,12 @@ def evaluate(data: str | Path, specs: Sequence[ModelSpec], out_dir: str | Path, 
 
     tuning = Tuning()
     tuned = [tune_osd(s, val, stride, jobs, tuning=tuning, on_done=tick) if s.kind == "osd" else s for s in specs]
+    tuned = calibration_variants(tuned, calibration)
     const_var = tune_constant_variance(target, val, stride, jobs, tuning, on_done=tick) if target else None
 
     test_res = run_all(tuned, test, stride, jobs, tick)
     snow_res = run_all(tuned, snow_tasks, stride, jobs, tick) if snow_tasks else {s.name: [] for s in tuned}
+    dep_res = run_all(tuned, deployment, stride, jobs, tick) if deployment else {}
     abl_rows = []
     if target is not None:
         variants = [replace(target, name=f"{target.name} (no guard, no uncertainty)", guard=False,
@@ -123,18 +136,22 @@ def evaluate(data: str | Path, specs: Sequence[ModelSpec], out_dir: str | Path, 
     metrics: dict = {
         "data": str(data), "dataset_fingerprint": dataset.fingerprint, "stride": stride,
         "window_s": window_s, "models": {}, "tuning": tuning.notes,
-        "specs": {s.name: {"kind": s.kind, "path": s.path, "q_scale": s.q_scale,
+        "specs": {s.name: {"kind": s.kind, "path": s.path, "q_scale": s.q_scale, "calibration": s.calibration,
                            "const_var": list(s.const_var) if s.const_var else None} for s in tuned},
+        "deployment_preroll_s": preroll_s if deployment else None,
     }
     for s in tuned:
         metrics["models"][s.name] = {"test": test_sum[s.name]}
         if snow_tasks:
             metrics["models"][s.name]["snow"] = snow_sum[s.name]
+        if deployment:
+            metrics["models"][s.name]["deployment"] = {"dead_reckoning_60s": dr_summary(dep_res[s.name]),
+                                                       **calibration_summary(dep_res[s.name])}
     if abl_rows:
         metrics["ablation"] = {"model": target.name, "rows": abl_rows}
     if target is not None and len(tuned) > 1:  # is the reference better than each other model beyond the spread?
         paired: dict = {"reference": target.name}
-        for split, res in (("test", test_res), ("snow", snow_res)):
+        for split, res in (("test", test_res), ("snow", snow_res), ("deployment", dep_res)):
             if res.get(target.name):
                 paired[split] = {s.name: paired_comparison(res[target.name], res[s.name])
                                  for s in tuned if s.name != target.name and res.get(s.name)}
@@ -169,6 +186,33 @@ def evaluate(data: str | Path, specs: Sequence[ModelSpec], out_dir: str | Path, 
 
     write_report(out, metrics)
     return metrics
+
+
+CALIBRATION_CHOICES = ("off", "on", "both")
+
+
+def calibration_variants(specs: Sequence[ModelSpec], calibration: str) -> list[ModelSpec]:
+    """``off``: as given; ``on``: every spec with the calibration states; ``both``: each twice (``NAME +cal``)."""
+    if calibration not in CALIBRATION_CHOICES:
+        raise ValueError(f"calibration must be one of {', '.join(CALIBRATION_CHOICES)}, got {calibration!r}")
+    if calibration == "off":
+        return list(specs)
+    if calibration == "on":
+        return [replace(s, calibration=True) for s in specs]
+    return [v for s in specs for v in (s, replace(s, name=f"{s.name} +cal", calibration=True))]
+
+
+def calibration_summary(results: Sequence[WindowResult]) -> dict:
+    """Mean calibration states at the outage start (after the GNSS pre-roll), in report units."""
+    import math
+
+    import numpy as np
+
+    cal = np.array([r.cal for r in results if r.cal is not None and np.isfinite(r.cal).all()])
+    if not cal.size:
+        return {}
+    return {"calibration_at_outage": {"yaw_rate_offset_dps_mean": math.degrees(float(cal[:, 0].mean())),
+                                      "wheel_scale_pct_mean": 100.0 * float(cal[:, 1].mean())}}
 
 
 def _safe(name: str) -> str:

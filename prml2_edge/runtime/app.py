@@ -45,6 +45,8 @@ def config_from_args(args: argparse.Namespace) -> RuntimeConfig:
         initial_pose=pose,
         sinks={"jsonl": args.jsonl, "csv": args.csv, "tum": args.tum,
                "status_interval_s": getattr(args, "status_interval", None)},
+        calibration={"file": getattr(args, "calibration", None),
+                     "enabled": False if getattr(args, "no_calibration", False) else None},
     )
 
 
@@ -85,7 +87,8 @@ def build_pipeline(cfg: RuntimeConfig, extra_sinks: list | None = None) -> Pipel
                               spinning=cfg.model.spinning, providers=cfg.model.providers, stride=cfg.model.stride,
                               mu=cfg.signals.mu,
                               stale_periods=cfg.signals.stale_periods, initial_pose=initial_pose, sinks=sinks,
-                              trt_cache_dir=cfg.model.trt_cache_dir, trt_fp16=cfg.model.trt_fp16)
+                              trt_cache_dir=cfg.model.trt_cache_dir, trt_fp16=cfg.model.trt_fp16,
+                              calibration=cfg.calibration.enabled, calibration_file=cfg.calibration.file)
     except BaseException:
         for sink in sinks:
             sink.close()

@@ -23,6 +23,12 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
                    help="execution providers in order, comma separated (default tensorrt,cuda,cpu)")
     g.add_argument("--stale-periods", type=float,
                    help="a signal is invalid after this many of its periods without a frame (default 3)")
+    c = parser.add_argument_group("self-calibration (yaw-rate offset, wheel scale)")
+    c.add_argument("--calibration", metavar="FILE",
+                   help="calibration state file: restored at start when it matches this vehicle (map and DBC), "
+                        "saved every minute of drive time and at the end")
+    c.add_argument("--no-calibration", action="store_true",
+                   help="switch the filter's calibration states and raw cues off (the paper's filter)")
     p = parser.add_argument_group("initial pose (default: first GNSS fix on the bus)")
     p.add_argument("--initial-pose", metavar="X,Y,HEADING_DEG",
                    help="east [m], north [m], heading clockwise from north [deg]")

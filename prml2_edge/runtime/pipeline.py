@@ -108,6 +108,7 @@ class Pipeline:
         self.stats = stats if stats is not None else decoder.stats
         self.latency = latency if latency is not None else (localizer.latency or LatencyRecorder())
         self.dbc_path = dbc_path
+        self.calibration_file = None  # a runtime.calibration.CalibrationFile (see use_calibration_file)
         self.last: StepOutput | None = None
         self.rows = 0
         self.bus_silent_rows = 0  # 50 Hz rows flagged bus_silent (no frame for > bus_silent_s)
@@ -123,7 +124,8 @@ class Pipeline:
               stride: int = 1, mu: float = 1.0, stale_periods: float = 3.0,
               initial_pose: InitialPose | None = None, sinks: Sequence = (),
               localizer_config: LocalizerConfig | None = None, trt_cache_dir: str = "~/.cache/prml2/trt",
-              trt_fp16: bool = False) -> Pipeline:
+              trt_fp16: bool = False, calibration: bool = True, calibration_file: str | Path | None = None
+              ) -> Pipeline:
         """Load and cross-check map, DBC and model; refuse mismatches at start-up with what differs.
 
         ``initial_pose`` None means: take it from the first GNSS fix on the bus, which needs a map
@@ -137,13 +139,32 @@ class Pipeline:
             model = OnnxModel(model if model is not None else default_model_path(), threads=threads,
                               providers=providers, trt_cache_dir=trt_cache_dir, trt_fp16=trt_fp16,
                               spinning=spinning)
-        cfg = localizer_config or LocalizerConfig(stride=stride, mu=mu)
+        cfg = localizer_config or LocalizerConfig(stride=stride, mu=mu, calibration=calibration)
         stats = FrameStats()
         latency = LatencyRecorder()
         decoder = FrameDecoder(signal_map, db, stats)
         assembler = Assembler.for_map(signal_map, stale_periods=stale_periods, stats=stats)
         localizer = StreamingLocalizer(model, cfg, initial_pose=initial_pose, latency=latency)
-        return cls(signal_map, decoder, assembler, localizer, sinks, stats, latency, dbc_path)
+        pipeline = cls(signal_map, decoder, assembler, localizer, sinks, stats, latency, dbc_path)
+        if calibration_file is not None and cfg.calibration:
+            pipeline.use_calibration_file(calibration_file)
+        return pipeline
+
+    def use_calibration_file(self, path: str | Path) -> None:
+        """Restore the calibration from ``path`` when it matches this vehicle; save it there every minute of
+        drive time and at :meth:`close` (:mod:`prml2_edge.runtime.calibration`)."""
+        from prml2_edge.runtime.calibration import CalibrationFile
+
+        dbc = self.dbc_path.name if self.dbc_path else self.signal_map.dbc
+        self.calibration_file = CalibrationFile(Path(path), f"{self.signal_map.name} ({dbc})")
+        restored = self.calibration_file.load()
+        if restored is not None:
+            self.localizer.restore_calibration(*restored)
+
+    def _save_calibration(self, t_s: float | None) -> None:
+        cal = self.localizer.calibration()
+        if self.calibration_file is not None and cal is not None:
+            self.calibration_file.save(*cal, t_s=t_s)
 
     @property
     def model(self):
@@ -185,9 +206,12 @@ class Pipeline:
         self.last = out
         self.rows += 1
         self._interval.rows += 1
+        if self.calibration_file is not None and self.calibration_file.due(out.t_s):
+            self._save_calibration(out.t_s)
         return out
 
     def close(self) -> None:
+        self._save_calibration(self.last.t_s if self.last is not None else None)
         for sink in self.sinks:
             sink.close()
 
@@ -252,6 +276,9 @@ class Pipeline:
             "guard": {"predictions": loc.guard_stats.n_predictions, "fired": loc.guard_stats.n_fired,
                       "fire_rate": loc.guard_stats.fire_rate},
             "ekf_resets": loc.ekf.n_resets if loc.ekf is not None else 0,
+            "gnss_init_rejected": loc.filter.n_gnss_init_rejected,
+            "calibration": {**loc.filter.summary().get("calibration", {"enabled": loc.config.calibration}),
+                            **(self.calibration_file.summary() if self.calibration_file is not None else {})},
             "latency": self.latency.summary(),
             "wall_s": wall_s, "data_s": data_s, "realtime_factor": (data_s / wall_s) if wall_s > 0 else None,
             "last": last, "sinks": sinks,
