@@ -234,7 +234,7 @@ def test_float64_parity_with_numpy_calibrated_over_3000_steps() -> None:
     xs_np, ps_np = [], []
     for t in range(n):
         if t > 0:
-            ekf.x, ekf.P = ne.predict(ekf.x, ekf.P, ekf.Q, DT)
+            ekf.x, ekf.P = ne.predict(ekf.x, ekf.P, ekf.Q, DT, ekf.model_bias_decay)
         ekf.x, ekf.P = ne.update_model_calibrated(ekf.x, ekf.P, z[t], z_var[t])
         assert ekf.update_cues(yaw[t], cue_var[t, 0], wheel[t], cue_var[t, 1]) is ne.StepStatus.SUCCESS
         xs_np.append(ekf.x.copy())
@@ -243,7 +243,9 @@ def test_float64_parity_with_numpy_calibrated_over_3000_steps() -> None:
     with torch.no_grad():
         xs_t, ps_t = et.run_filter_calibrated(
             torch.tensor(x0)[None], torch.tensor(P0)[None], torch.tensor(z)[None], torch.tensor(z_var)[None],
-            torch.tensor(cues)[None], torch.tensor(cue_var)[None], torch.tensor(Q))
+            torch.tensor(cues)[None], torch.tensor(cue_var)[None], torch.tensor(Q),
+            model_bias_decay=ekf.model_bias_decay)
+    assert ekf.model_bias_decay < 1.0
     assert xs_t.shape == (1, n, schema.CalState.FULL_DIM)
     assert np.abs(xs_t[0].numpy() - xs_np).max() <= 1e-9
     assert np.abs(ps_t[0].numpy() - ps_np).max() <= 1e-9

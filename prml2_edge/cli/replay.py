@@ -16,6 +16,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--speed", type=float, default=1.0, help="playback speed factor with --realtime (default 1)")
     parser.add_argument("--can-out", metavar="PATH",
                         help="write PRML2_POSE/PRML2_DYNAMICS/PRML2_POSE_STD frames to this CAN log")
+    parser.add_argument("--truth", metavar="CSV",
+                        help="ReV-StED-schema CSV of the same drive with ground truth (e.g. the one prml2 encode "
+                             "read): print the outage error, drift and how often the error lies inside the "
+                             "reported 1/2/3-sigma ellipses")
     add_pipeline_arguments(parser)
 
 
@@ -41,6 +45,14 @@ def run(args: argparse.Namespace) -> int:
 
         Path(args.can_out).parent.mkdir(parents=True, exist_ok=True)
         extra.append(CanSink(can.Logger(args.can_out)))
+    truth = None
+    if args.truth:
+        from prml2_edge.data.revsted import load_drive
+        from prml2_edge.runtime.pipeline import MemorySink
+
+        truth = load_drive(args.truth, require_ground_truth=True)
+        memory = MemorySink()
+        extra.append(memory)
     pipeline = build_pipeline(cfg, extra)
     print(f"replaying {args.log}: {n_frames} frames, {t_last - t_first:.1f} s"
           f"{' in real time' if args.realtime else ''}; {pipeline.model.describe()}"
@@ -55,6 +67,12 @@ def run(args: argparse.Namespace) -> int:
     summary = pipeline.summary()
     for line in summary_lines(summary):
         print(line)
+    if truth is not None:
+        from prml2_edge.runtime.demo import compare_with_truth, truth_lines
+
+        summary["truth"] = compare_with_truth(memory.arrays(), truth)
+        for line in truth_lines(summary["truth"]):
+            print(line)
     print("latency per stage:")
     for line in pipeline.latency.report_lines():
         print("  " + line)

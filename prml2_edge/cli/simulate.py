@@ -24,9 +24,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="manoeuvre family (default: mixed, or snow when mu <= 0.5)")
     parser.add_argument("--name", default=None, help="drive name (default sim_<family>_s<seed>)")
     parser.add_argument("--workers", type=int, default=2, help="worker processes for --recipe (default 2)")
+    parser.add_argument("--yaw-offset-dps", type=float, default=None, metavar="DEG_S",
+                        help="single drive: this CAN yaw-rate offset [deg/s] instead of a random one")
+    parser.add_argument("--wheel-scale-pct", type=float, default=None, metavar="PCT",
+                        help="single drive: every wheel reads this much fast [%%] (rolling-radius error) instead "
+                             "of random per-wheel errors")
 
 
 def run(args: argparse.Namespace) -> int:
+    import math
     import time
 
     from prml2_edge.data.datasets import generate_dataset, load_dataset
@@ -41,8 +47,16 @@ def run(args: argparse.Namespace) -> int:
         family = args.family or ("snow" if args.mu <= 0.5 else "mixed")
         name = args.name or f"sim_{family}_s{args.seed}"
         role = "snow" if family == "snow" else "dry"
-        recipe = {"name": "single", "drives": [{"name": name, "family": family, "mu": args.mu, "seed": args.seed,
-                                                 "minutes": args.minutes, "role": role}]}
+        errors = {}
+        if args.yaw_offset_dps is not None:
+            errors["yaw_offset_radps"] = math.radians(args.yaw_offset_dps)
+        if args.wheel_scale_pct is not None:
+            errors["wheel_radius_error"] = args.wheel_scale_pct / 100.0
+        drive_spec = {"name": name, "family": family, "mu": args.mu, "seed": args.seed, "minutes": args.minutes,
+                      "role": role}
+        if errors:
+            drive_spec["sensor_errors"] = errors
+        recipe = {"name": "single", "drives": [drive_spec]}
         out = generate_dataset(args.out, recipe, workers=1, progress=True)
     ds = load_dataset(out)
     minutes = sum(len(d) for d in ds.drives) / 50.0 / 60.0

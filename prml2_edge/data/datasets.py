@@ -37,7 +37,7 @@ from prml2_edge.progress import Progress
 FORMAT = "prml2-dataset/1"
 SPLITS = ("train", "val", "test")
 SPLIT_FRACTIONS = (0.7, 0.1, 0.2)
-_DRIVE_KEYS = {"name", "family", "mu", "seed", "minutes", "role"}
+_DRIVE_KEYS = {"name", "family", "mu", "seed", "minutes", "role", "sensor_errors"}
 
 
 def _benchmark_recipe() -> dict:
@@ -88,6 +88,8 @@ def resolve_recipe(recipe: str | dict) -> dict:
             raise ConfigError(f"recipe drive {i}: role must be 'dry' or 'snow', got {role!r}")
         drives.append({"name": d.get("name", f"{role}_{i:03d}"), "family": d["family"], "mu": float(d["mu"]),
                        "seed": int(d["seed"]), "minutes": float(d["minutes"]), "role": role})
+        if d.get("sensor_errors"):
+            drives[-1]["sensor_errors"] = dict(d["sensor_errors"])
     names = [d["name"] for d in drives]
     if len(set(names)) != len(names):
         raise ConfigError("recipe drive names must be unique")
@@ -98,7 +100,8 @@ def _simulate_to_csv(spec: dict, path: str) -> str:
     """Worker: simulate one recipe drive and write its CSV (top-level for pickling)."""
     from prml2_edge.data.simulate import simulate_drive
 
-    drive = simulate_drive(spec["minutes"], spec["mu"], spec["seed"], spec["family"], name=spec["name"])
+    drive = simulate_drive(spec["minutes"], spec["mu"], spec["seed"], spec["family"], name=spec["name"],
+                           sensor_errors=spec.get("sensor_errors"))
     drive.meta["role"] = spec["role"]
     write_drive_csv(drive, path)
     return path

@@ -132,20 +132,30 @@ class CalibrationNoise:
       10 min (1 sigma) at the default 2.2e-11 rad^2/s^3;
     * ``wheel_scale_psd_ps``: the rolling radius changes with tyre temperature and pressure, ~0.1 %
       in 10 min at 1.7e-9 1/s;
-    * ``model_bias_psd_rad2ps3``: the model's omega_z error wanders within seconds (it is a bias over
-      one 5 s window): 2e-6 rad^2/s^3 lets it move by ~0.1 deg/s in 1 s.
+    * ``model_bias_std_radps`` / ``model_bias_tau_s``: the model's omega_z error is slow (a bias over
+      one 5 s window) but has no lasting mean on the drives it was trained for: a first-order
+      Gauss-Markov process with this stationary sigma and correlation time. Over seconds the heading
+      then follows the calibrated CAN yaw rate, over minutes the model.
     """
 
     yaw_offset_psd_rad2ps3: float = 2.2e-11
     wheel_scale_psd_ps: float = 1.7e-9
-    model_bias_psd_rad2ps3: float = 2e-6
+    model_bias_std_radps: float = 0.3 * schema.DEG_TO_RAD
+    model_bias_tau_s: float = 5.0
+
+    def decay(self, dt_s: float = schema.DT_S) -> float:
+        """``exp(-dt / tau)`` of the model bias over ``dt_s`` [s]."""
+        if not self.model_bias_tau_s > 0.0:
+            raise ValueError(f"model_bias_tau_s must be > 0, got {self.model_bias_tau_s!r}")
+        return math.exp(-float(dt_s) / self.model_bias_tau_s)
 
     def diagonal(self, dt_s: float = schema.DT_S) -> np.ndarray:
         """Process-noise variances (3,) of the calibration states over ``dt_s`` [s]."""
-        v = np.array([self.yaw_offset_psd_rad2ps3, self.wheel_scale_psd_ps, self.model_bias_psd_rad2ps3])
+        v = np.array([self.yaw_offset_psd_rad2ps3 * dt_s, self.wheel_scale_psd_ps * dt_s,
+                      self.model_bias_std_radps**2 * (1.0 - self.decay(dt_s) ** 2)])
         if not np.all(v >= 0.0):
-            raise ValueError("calibration process-noise PSDs must be >= 0")
-        return v * float(dt_s)
+            raise ValueError("calibration process noise must be >= 0")
+        return v
 
 
 @dataclass(frozen=True)
@@ -158,7 +168,7 @@ class CalibrationStd:
 
     yaw_offset_radps: float = 0.5 * schema.DEG_TO_RAD
     wheel_scale: float = 0.02
-    model_bias_radps: float = 0.5 * schema.DEG_TO_RAD
+    model_bias_radps: float = 0.3 * schema.DEG_TO_RAD  # CalibrationNoise.model_bias_std_radps
 
     def diagonal(self) -> np.ndarray:
         std = np.array([self.yaw_offset_radps, self.wheel_scale, self.model_bias_radps])
@@ -242,14 +252,16 @@ def _check_state(x: np.ndarray) -> np.ndarray:
     return x
 
 
-def process_model(x: np.ndarray, dt_s: float) -> np.ndarray:
+def process_model(x: np.ndarray, dt_s: float, model_bias_decay: float = 1.0) -> np.ndarray:
     """A-priori state ``f(x)`` (Eq. state_prediction, planar).
 
     Parameters
     ----------
     x : (8,) state, layout :class:`prml2_edge.schema.EkfState`, or (11,) with the calibration
-        states (:class:`prml2_edge.schema.CalState`, random walks: constant here).
+        states (:class:`prml2_edge.schema.CalState`): the sensor errors are random walks (constant
+        here), the model's omega_z bias a first-order Gauss-Markov process (``* model_bias_decay``).
     dt_s : step [s].
+    model_bias_decay : ``exp(-dt / tau)`` of the model bias (1: a random walk).
 
     Returns
     -------
@@ -262,10 +274,12 @@ def process_model(x: np.ndarray, dt_s: float) -> np.ndarray:
     out[EkfState.POS] = x[EkfState.POS] + rd
     out[_YAW] = x[_YAW] + x[_OMEGA] * dt
     out[_VEL] = x[_VEL] + x[_ACC] * dt
+    if x.shape[0] == FULL_DIM:
+        out[_B_MODEL] = x[_B_MODEL] * model_bias_decay
     return out
 
 
-def process_jacobian(x: np.ndarray, dt_s: float) -> np.ndarray:
+def process_jacobian(x: np.ndarray, dt_s: float, model_bias_decay: float = 1.0) -> np.ndarray:
     """Analytic Jacobian ``F = df/dx`` (8, 8) of :func:`process_model` (the paper's ``F_t``, planar).
 
     Non-identity entries: ``dp/dpsi = dR/dpsi (v dt + a dt^2/2)``, ``dp/dv = R dt``,
@@ -283,6 +297,8 @@ def process_jacobian(x: np.ndarray, dt_s: float) -> np.ndarray:
     f[_YAW, _OMEGA] = dt
     f[_VX, _AX] = dt
     f[_VY, _AY] = dt
+    if x.shape[0] == FULL_DIM:
+        f[_B_MODEL, _B_MODEL] = model_bias_decay
     return f
 
 
@@ -291,7 +307,8 @@ def symmetrize(p: np.ndarray) -> np.ndarray:
     return 0.5 * (p + p.T)
 
 
-def predict(x: np.ndarray, P: np.ndarray, Q: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+def predict(x: np.ndarray, P: np.ndarray, Q: np.ndarray, dt_s: float,
+            model_bias_decay: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """EKF prediction: ``x <- f(x)``, ``P <- F P F^T + Q`` (the paper's prediction step).
 
     Parameters
@@ -305,8 +322,8 @@ def predict(x: np.ndarray, P: np.ndarray, Q: np.ndarray, dt_s: float) -> tuple[n
     -------
     x, P : a-priori state (8,) and covariance (8, 8) at t.
     """
-    f = process_jacobian(x, dt_s)
-    x_new = process_model(x, dt_s)
+    f = process_jacobian(x, dt_s, model_bias_decay)
+    x_new = process_model(x, dt_s, model_bias_decay)
     p_new = f @ P @ f.T + Q
     return x_new, symmetrize(p_new)
 
@@ -517,9 +534,11 @@ class Ekf:
         self.calibration = bool(calibration)
         self.dim = FULL_DIM if self.calibration else STATE_DIM
         self.cal_std = cal_std or CalibrationStd()
+        cal_noise = cal_noise or CalibrationNoise()
+        self.model_bias_decay = cal_noise.decay(self.dt_s) if self.calibration else 1.0
         q = default_process_noise(self.dt_s) if Q is None else np.array(Q, dtype=np.float64)
         if self.calibration:
-            q = extend_calibrated(q, (cal_noise or CalibrationNoise()).diagonal(self.dt_s))
+            q = extend_calibrated(q, cal_noise.diagonal(self.dt_s))
         if q.shape != (self.dim, self.dim):
             raise ValueError(f"Q must have shape ({self.dim}, {self.dim}), got {q.shape}")
         self.Q = q
@@ -565,7 +584,7 @@ class Ekf:
         variances. Never raises on bad data: see :class:`StepStatus`.
         """
         with np.errstate(all="ignore"):
-            x, p = predict(self.x, self.P, self.Q, self.dt_s)
+            x, p = predict(self.x, self.P, self.Q, self.dt_s, self.model_bias_decay)
             if z is None and z_var is None:
                 return self._commit(x, p, StepStatus.PREDICT_ONLY)
             zz = None if z is None else np.asarray(z, dtype=np.float64)
@@ -684,3 +703,28 @@ class Ekf:
     def pose_std(self) -> tuple[float, float]:
         """``(pos_std_m, yaw_std_rad)``: ``sqrt(var p_x + var p_y)`` (radial RMS) and ``sqrt(var psi)``."""
         return float(math.sqrt(self.P[_PX, _PX] + self.P[_PY, _PY])), float(math.sqrt(self.P[_YAW, _YAW]))
+
+
+# Share of a 2D Gaussian inside its k-sigma ellipse, 1 - exp(-k^2 / 2): 39.3, 86.5, 98.9 %.
+COVERAGE_IDEAL_PCT = {k: 100.0 * (1.0 - math.exp(-k * k / 2.0)) for k in (1, 2, 3)}
+
+
+def mahalanobis2(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Squared Mahalanobis distances (n,) of 2D errors (n, 2) under covariances (n, 2, 2) (NaN where singular)."""
+    a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
+    det = a * c - b * b
+    with np.errstate(all="ignore"):
+        m2 = (c * err[:, 0] ** 2 - 2 * b * err[:, 0] * err[:, 1] + a * err[:, 1] ** 2) / det
+    return np.where(det > 0, m2, np.where(np.hypot(err[:, 0], err[:, 1]) == 0, 0.0, np.nan))
+
+
+def coverage_pct(m2: np.ndarray) -> dict[str, float]:
+    """Share of steps [%] inside the 1/2/3-sigma ellipses from squared Mahalanobis distances (NaN ignored).
+
+    A consistent filter gives :data:`COVERAGE_IDEAL_PCT`; less means the reported uncertainty is too small.
+    """
+    m2 = np.asarray(m2, dtype=np.float64)
+    m2 = m2[np.isfinite(m2)]
+    if not m2.size:
+        return {}
+    return {f"coverage_{k}sigma_pct": float(100.0 * np.mean(m2 <= k * k)) for k in (1, 2, 3)}

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from prml2_edge import schema
-from prml2_edge.ekf.numpy_ekf import default_process_noise, wrap_angle
+from prml2_edge.ekf.numpy_ekf import default_process_noise, mahalanobis2, wrap_angle
 from prml2_edge.guard import physics_guard
 from prml2_edge.schema import EkfState, Z
 from prml2_edge.training.osd_baseline import StandstillBias, drive_bias
@@ -285,15 +285,6 @@ def run_window(spec: ModelSpec, task: WindowTask, stride: int = 1) -> WindowResu
             z[:, list(OSD_MISSING)] = np.nan
     return WindowResult(spec.name, task.key, task.split, pose, pos_err, yaw_err, task.distance_m, z,
                         int(traj.guard_fired[h:].sum()), int(traj.model_used[h:].sum()), mahal2, traj.cal[h])
-
-
-def mahalanobis2(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """Squared Mahalanobis distances (n,) of 2D errors (n, 2) under covariances (n, 2, 2) (NaN where singular)."""
-    a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
-    det = a * c - b * b
-    with np.errstate(all="ignore"):
-        m2 = (c * err[:, 0] ** 2 - 2 * b * err[:, 0] * err[:, 1] + a * err[:, 1] ** 2) / det
-    return np.where(det > 0, m2, np.where(np.hypot(err[:, 0], err[:, 1]) == 0, 0.0, np.nan))
 
 
 def _run_pair(args: tuple[ModelSpec, WindowTask, int]) -> WindowResult:

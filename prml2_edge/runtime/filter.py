@@ -88,8 +88,10 @@ class PoseFilter:
         cfg = self.config
         self.ekf = Ekf(x0, P0, Q=self.process_noise, dt_s=self.dt_s, calibration=self.calibrated,
                        cal_noise=CalibrationNoise(cfg.cal_yaw_offset_psd, cfg.cal_wheel_scale_psd,
-                                                  cfg.cal_model_bias_psd) if self.calibrated else None,
-                       cal_std=CalibrationStd() if self.calibrated else None)
+                                                  cfg.cal_model_bias_std_radps, cfg.cal_model_bias_tau_s)
+                       if self.calibrated else None,
+                       cal_std=CalibrationStd(model_bias_radps=cfg.cal_model_bias_std_radps)
+                       if self.calibrated else None)
         if self.calibrated and self.calibration0 is not None:
             self.ekf.set_calibration(*self.calibration0)
         self._last_abs_t = t_s

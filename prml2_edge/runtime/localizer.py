@@ -72,7 +72,8 @@ class LocalizerConfig:
     standstill_yaw_std_radps: float = 0.001
     cal_yaw_offset_psd: float = 2.2e-11  # random walks of the calibration states (ekf.numpy_ekf.CalibrationNoise)
     cal_wheel_scale_psd: float = 1.7e-9
-    cal_model_bias_psd: float = 2e-6
+    cal_model_bias_std_radps: float = 0.3 * schema.DEG_TO_RAD  # the model's omega_z error: Gauss-Markov
+    cal_model_bias_tau_s: float = 5.0
 
     def __post_init__(self) -> None:
         if self.stride < 1:

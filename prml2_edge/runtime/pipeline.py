@@ -32,7 +32,7 @@ from prml2_edge.runtime.latency import LatencyRecorder
 from prml2_edge.runtime.localizer import LocalizerConfig, StepOutput, StreamingLocalizer
 from prml2_edge.runtime.stats import FrameStats
 from prml2_edge.runtime.status import PoseStatus
-from prml2_edge.schema import EkfState
+from prml2_edge.schema import CalState, EkfState
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +54,10 @@ def resolve_map(name_or_path: str | Path) -> Path:
                           "(or give a path to a map .toml)") from None
 
 
+_NAN_COV = np.full((2, 2), np.nan)
+_NAN_CAL = np.full(CalState.DIM, np.nan)
+
+
 class MemorySink:
     """Keeps every step's time, state, uncertainty and status in memory (tests, demo, evaluation)."""
 
@@ -64,6 +68,8 @@ class MemorySink:
         self.status: list[int] = []
         self.model_used: list[bool] = []
         self.gnss_outage: list[bool] = []
+        self.pos_cov: list[np.ndarray] = []
+        self.cal: list[np.ndarray] = []
 
     def step(self, out: StepOutput) -> None:
         self.t_s.append(out.t_s)
@@ -72,13 +78,18 @@ class MemorySink:
         self.status.append(int(out.status))
         self.model_used.append(out.model_used)
         self.gnss_outage.append(out.gnss_outage)
+        self.pos_cov.append(out.pos_cov if out.pos_cov is not None else _NAN_COV)
+        self.cal.append(out.cal if out.cal is not None else _NAN_CAL)
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """Per step: ``t_s``, ``x`` (N, 8), ``pos_std_m``, ``status``, ``model_used``, ``gnss_outage`` (N,)."""
+        """Per step: ``t_s``, ``x`` (N, 8), ``pos_std_m``, ``status``, ``model_used``, ``gnss_outage`` (N,),
+        ``pos_cov`` (N, 2, 2) and ``cal`` (N, 3) (NaN before the start / with calibration off)."""
         return {"t_s": np.asarray(self.t_s), "x": np.asarray(self.x).reshape(-1, EkfState.DIM),
                 "pos_std_m": np.asarray(self.pos_std_m), "status": np.asarray(self.status, dtype=np.int8),
                 "model_used": np.asarray(self.model_used, dtype=bool),
-                "gnss_outage": np.asarray(self.gnss_outage, dtype=bool)}
+                "gnss_outage": np.asarray(self.gnss_outage, dtype=bool),
+                "pos_cov": np.asarray(self.pos_cov).reshape(-1, 2, 2),
+                "cal": np.asarray(self.cal).reshape(-1, CalState.DIM)}
 
     def close(self) -> None:
         pass

@@ -113,14 +113,23 @@ def _linear_part(x: Tensor, dt: float) -> Tensor:
     return x[..., _NPOS:] + (dt * has_rate.squeeze(-1)) * x.index_select(-1, src)
 
 
-def process_model(x: Tensor, dt_s: float) -> Tensor:
+def _bias_decay(x: Tensor, out: Tensor, model_bias_decay: float) -> Tensor:
+    """The model's omega_z bias decays (Gauss-Markov) in the calibrated layout; ``out`` (..., n - 2)."""
+    if x.shape[-1] != FULL_DIM or model_bias_decay == 1.0:
+        return out
+    scale = torch.ones(FULL_DIM - _NPOS, dtype=x.dtype, device=x.device)
+    scale[CalState.MODEL_OMEGA_BIAS.start - _NPOS] = model_bias_decay
+    return out * scale
+
+
+def process_model(x: Tensor, dt_s: float, model_bias_decay: float = 1.0) -> Tensor:
     """A-priori state ``f(x)`` (Eq. state_prediction, planar); ``x`` (..., 8) -> (..., 8).
 
     ``p += R(psi)(v dt + a dt^2/2)``, ``psi += omega dt``, ``v += a dt``; ``psi`` is not wrapped.
     """
     dt = float(dt_s)
     _, rd = _rotation_terms(x, dt)
-    return torch.cat([x[..., EkfState.POS] + rd, _linear_part(x, dt)], dim=-1)
+    return torch.cat([x[..., EkfState.POS] + rd, _bias_decay(x, _linear_part(x, dt), model_bias_decay)], dim=-1)
 
 
 def _jacobian_top(rot: Tensor, rd: Tensor, dt: float, n: int = STATE_DIM) -> Tensor:
@@ -152,15 +161,17 @@ def process_jacobian(x: Tensor, dt_s: float) -> Tensor:
     return torch.cat([top, eye[..., _NPOS:, :]], dim=-2)
 
 
-def _apply_jacobian(g: Tensor, m: Tensor, dt: float) -> Tensor:
+def _apply_jacobian(g: Tensor, m: Tensor, dt: float, model_bias_decay: float = 1.0) -> Tensor:
     """``F @ m`` for ``F`` = [[I, G], [0, I + dt E]] without the dense 8x8 product; ``m`` (..., 8, n)."""
     src, has_rate = _constants(m.shape[-2], m.dtype, m.device)
     top = m[..., :_NPOS, :] + g @ m[..., _NPOS:, :]  # (..., 2, n)
     bottom = m[..., _NPOS:, :] + (dt * has_rate) * m.index_select(-2, src)  # (..., n - 2, n)
+    if m.shape[-2] == FULL_DIM and model_bias_decay != 1.0:
+        bottom = _bias_decay(m[..., 0, :], bottom.transpose(-1, -2), model_bias_decay).transpose(-1, -2)
     return torch.cat([top, bottom], dim=-2)
 
 
-def predict(x: Tensor, P: Tensor, Q: Tensor, dt_s: float) -> tuple[Tensor, Tensor]:
+def predict(x: Tensor, P: Tensor, Q: Tensor, dt_s: float, model_bias_decay: float = 1.0) -> tuple[Tensor, Tensor]:
     """Prediction ``x <- f(x)``, ``P <- F P F^T + Q``; ``x`` (B, 8), ``P`` (B, 8, 8), ``Q`` (8, 8) or (B, 8, 8).
 
     ``F P F^T`` is evaluated as ``F (F P)^T`` (``P`` symmetric) with the block structure of ``F``.
@@ -168,9 +179,9 @@ def predict(x: Tensor, P: Tensor, Q: Tensor, dt_s: float) -> tuple[Tensor, Tenso
     dt = float(dt_s)
     rot, rd = _rotation_terms(x, dt)
     g = _jacobian_top(rot, rd, dt, x.shape[-1])
-    fp = _apply_jacobian(g, P, dt)
-    p_new = _apply_jacobian(g, fp.transpose(-1, -2), dt) + Q
-    x_new = torch.cat([x[..., EkfState.POS] + rd, _linear_part(x, dt)], dim=-1)
+    fp = _apply_jacobian(g, P, dt, model_bias_decay)
+    p_new = _apply_jacobian(g, fp.transpose(-1, -2), dt, model_bias_decay) + Q
+    x_new = torch.cat([x[..., EkfState.POS] + rd, _bias_decay(x, _linear_part(x, dt), model_bias_decay)], dim=-1)
     return x_new, symmetrize(p_new)
 
 
@@ -264,7 +275,8 @@ def cue_measurement(x: Tensor, yaw_rate: Tensor, wheel_speed: Tensor) -> tuple[T
 
 
 def run_filter_calibrated(x0: Tensor, P0: Tensor, z: Tensor, z_var: Tensor, cues: Tensor, cue_var: Tensor,
-                          Q: Tensor, dt_s: float = schema.DT_S) -> tuple[Tensor, Tensor]:
+                          Q: Tensor, dt_s: float = schema.DT_S, model_bias_decay: float = 1.0
+                          ) -> tuple[Tensor, Tensor]:
     """The calibrated filter over a batch: each step predict, model z update, raw-cue update.
 
     ``x0`` (B, 11), ``P0`` (B, 11, 11), ``z``/``z_var`` (B, T, 5), ``cues``/``cue_var`` (B, T, 2)
@@ -275,7 +287,7 @@ def run_filter_calibrated(x0: Tensor, P0: Tensor, z: Tensor, z_var: Tensor, cues
     xs, ps = [], []
     for t in range(z.shape[1]):
         if t > 0:
-            x, P = predict(x, P, Q, dt_s)
+            x, P = predict(x, P, Q, dt_s, model_bias_decay)
         x, P = update_model_calibrated(x, P, z[:, t], z_var[:, t])
         innovation, h = cue_measurement(x, cues[:, t, 0], cues[:, t, 1])
         x, P = update_linear(x, P, h, innovation, cue_var[:, t])

@@ -23,7 +23,7 @@ SNOW_MU_RANGE = (0.2, 0.5)
 
 
 def simulate_drive(minutes: float, mu: float, seed: int, family: str = "mixed", name: str | None = None,
-                   progress: bool = False) -> Drive:
+                   progress: bool = False, sensor_errors: dict | None = None) -> Drive:
     """Simulate one drive and return it with ground truth.
 
     Parameters
@@ -40,6 +40,10 @@ def simulate_drive(minutes: float, mu: float, seed: int, family: str = "mixed", 
         Drive name (default ``sim_<family>_s<seed>``).
     progress : bool
         Show a progress bar on stderr.
+    sensor_errors : dict, optional
+        Fields of :class:`SensorErrors` to set instead of drawing them (known offsets for
+        calibration tests), e.g. ``{"yaw_offset_radps": -0.007}``; ``wheel_radius_error`` may be one
+        number (all four wheels).
 
     Returns
     -------
@@ -66,7 +70,10 @@ def simulate_drive(minutes: float, mu: float, seed: int, family: str = "mixed", 
                                  free_steer=plan.free_steer, progress_cb=bar.update)
     finally:
         bar.close()
-    onboard, errors = onboard_signals(trace, params, rng)
+    errors = SensorErrors.draw(rng)
+    if sensor_errors:
+        errors = errors.with_overrides(sensor_errors)
+    onboard, errors = onboard_signals(trace, params, rng, errors)
     z_gt = np.stack([trace.v_x, trace.v_y, trace.a_x, trace.a_y, trace.r], axis=1)
     pose = np.stack([trace.x, trace.y, trace.psi], axis=1)
     meta = {

@@ -28,6 +28,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.data.simulate.vehicle import VehicleParams, VehicleTrace
+from prml2_edge.errors import ConfigError
 
 _IDX = {s.name: s.index for s in schema.SIGNALS}
 _KMH = schema.KMH_TO_MPS
@@ -62,6 +63,20 @@ class SensorErrors:
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+    def with_overrides(self, values: dict) -> SensorErrors:
+        """A copy with some fields set (``wheel_radius_error`` may be one number for all four wheels)."""
+        from dataclasses import fields, replace
+
+        known = {f.name for f in fields(self)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ConfigError(f"unknown sensor error {unknown[0]!r} (known: {', '.join(sorted(known))})")
+        values = dict(values)
+        wre = values.get("wheel_radius_error")
+        if wre is not None and not isinstance(wre, tuple | list):
+            values["wheel_radius_error"] = (float(wre),) * 4
+        return replace(self, **values)
 
 
 # White noise (1 sigma, SI) and first-order lag [s] per canonical signal.
