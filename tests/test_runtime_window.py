@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from prml2_edge.errors import ConfigError
-from prml2_edge.runtime.decode import GnssFix
 from prml2_edge.runtime.initial_pose import InitialPose, initial_state, psi_rad_to_heading_deg
 from prml2_edge.runtime.latency import LatencyRecorder
+from prml2_edge.runtime.rows import GnssFix
 from prml2_edge.runtime.window import Window
 
 

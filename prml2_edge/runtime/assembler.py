@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from prml2_edge import schema
-from prml2_edge.runtime.decode import DecodedFrame, GnssFix
+from prml2_edge.runtime.rows import AssembledRow, DecodedFrame, GnssFix
 from prml2_edge.runtime.stats import FrameStats
 from prml2_edge.runtime.status import FrameStatus
 
@@ -67,32 +67,6 @@ class StuckCheck:
 # Simulated drives (seed 3, 5, 11; up to 50 s without a yaw-rate step) stay below 0.16 rad and
 # 0.45 m/s^2 while the yaw rate holds, so a healthy sensor does not trip it.
 YAW_RATE_STUCK = StuckCheck(index=2, hold_s=1.0, witness=(1, 3), span=(0.35, 2.0))
-
-
-@dataclass
-class AssembledRow:
-    """One 50 Hz row of o_t.
-
-    ``values`` (9,) SI, canonical order (never-received signals hold 0.0 and are invalid);
-    ``valid`` (9,) bool; ``age_s`` (9,) seconds since the held value's frame (inf if never);
-    ``gnss`` the newest GNSS fix that arrived within this row's interval;
-    ``trigger_ns`` ``time.perf_counter_ns()`` when the frame that closed this row was received
-    (0 when the row was flushed at the end), the start of the end-to-end latency.
-    """
-
-    k: int
-    t_s: float
-    values: np.ndarray
-    valid: np.ndarray
-    age_s: np.ndarray
-    gnss: GnssFix | None = None
-    discontinuity: bool = False
-    trigger_ns: int = 0
-    bus_silent: bool = False  # no frame at all for more than bus_silent_s before this row
-
-    @property
-    def all_valid(self) -> bool:
-        return bool(self.valid.all())
 
 
 class Assembler:

@@ -13,7 +13,7 @@ raises on the hot path.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import can
 import cantools
@@ -21,49 +21,9 @@ import cantools
 from prml2_edge import schema
 from prml2_edge.can.checksum import checksum_function
 from prml2_edge.can.signal_map import SignalMap
+from prml2_edge.runtime.rows import DecodedFrame, GnssFix
 from prml2_edge.runtime.stats import FrameStats
 from prml2_edge.runtime.status import FrameStatus
-
-
-@dataclass(frozen=True)
-class GnssFix:
-    """A GNSS fix from the bus: position in the local frame, heading as GNSS receivers give it.
-
-    ``x_m`` east [m], ``y_m`` north [m], ``heading_deg`` true heading clockwise from north
-    [deg] (None when the map has no heading signal). ``t_s`` is the frame's timestamp [s].
-    """
-
-    t_s: float
-    x_m: float
-    y_m: float
-    heading_deg: float | None
-    valid: bool
-
-    @property
-    def psi_rad(self) -> float | None:
-        """Heading counter-clockwise from east [rad] (the EKF's convention), wrapped to (-pi, pi]."""
-        if self.heading_deg is None:
-            return None
-        psi = math.pi / 2.0 - math.radians(self.heading_deg)
-        return math.atan2(math.sin(psi), math.cos(psi))
-
-
-@dataclass
-class DecodedFrame:
-    """What one frame contributed: values of canonical signals and their quality flags.
-
-    ``index[i]`` is the canonical signal index (``schema.SIGNALS``) of ``value_si[i]``;
-    ``ok[i]`` is False when the value's quality bit says invalid (the value is then not held,
-    but the signal is marked invalid at once).
-    """
-
-    status: FrameStatus
-    t_s: float
-    message: str | None = None
-    index: list[int] = field(default_factory=list)
-    value_si: list[float] = field(default_factory=list)
-    ok: list[bool] = field(default_factory=list)
-    gnss: GnssFix | None = None
 
 
 @dataclass

@@ -18,7 +18,7 @@ import numpy as np
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import default_initial_covariance
 from prml2_edge.errors import ConfigError
-from prml2_edge.runtime.decode import GnssFix
+from prml2_edge.runtime.rows import GnssFix
 from prml2_edge.schema import EkfState
 
 _FILE_KEYS = {"x_m", "y_m", "heading_deg", "pos_std_m", "heading_std_deg"}

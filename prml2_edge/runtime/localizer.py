@@ -24,9 +24,9 @@ import numpy as np
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import Ekf, StepStatus, default_process_noise, wrap_angle
 from prml2_edge.guard import GuardStats, physics_guard
-from prml2_edge.runtime.decode import GnssFix
 from prml2_edge.runtime.initial_pose import InitialPose, initial_state
 from prml2_edge.runtime.latency import LatencyRecorder
+from prml2_edge.runtime.rows import GnssFix
 from prml2_edge.runtime.status import InferenceStatus, PoseStatus
 from prml2_edge.runtime.window import Window
 from prml2_edge.schema import EkfState

@@ -24,12 +24,13 @@ import numpy as np
 from prml2_edge import schema
 from prml2_edge.can.signal_map import SignalMap, load_map_and_dbc, shipped_map_path
 from prml2_edge.errors import ConfigError
-from prml2_edge.runtime.assembler import AssembledRow, Assembler
+from prml2_edge.runtime.assembler import Assembler
 from prml2_edge.runtime.decode import FrameDecoder
 from prml2_edge.runtime.inference import OnnxModel, default_model_path
 from prml2_edge.runtime.initial_pose import InitialPose
 from prml2_edge.runtime.latency import LatencyRecorder
 from prml2_edge.runtime.localizer import LocalizerConfig, StepOutput, StreamingLocalizer
+from prml2_edge.runtime.rows import AssembledRow
 from prml2_edge.runtime.stats import FrameStats
 from prml2_edge.runtime.status import PoseStatus
 from prml2_edge.schema import EkfState
