@@ -29,6 +29,7 @@ from prml2_edge.resources import project_dbc_path
 from prml2_edge.runtime.localizer import StepOutput
 from prml2_edge.runtime.status import PoseStatus
 from prml2_edge.schema import EkfState
+from prml2_edge.tum import tum_line
 
 
 class _FileSink:
@@ -97,8 +98,7 @@ class TumSink(_FileSink):
             return
         x, y, psi = out.x[0], out.x[1], out.x[2]
         try:
-            self._f.write(f"{out.t_s:.6f} {x:.4f} {y:.4f} 0.0 0.0 0.0 {math.sin(psi / 2):.8f} "
-                          f"{math.cos(psi / 2):.8f}\n")
+            self._f.write(tum_line(out.t_s, x, y, psi))
             self.rows += 1
         except (OSError, ValueError) as exc:
             self._failed(exc)
