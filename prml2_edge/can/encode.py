@@ -223,7 +223,7 @@ def _encode_gnss(msg, gnss, pose_row: np.ndarray) -> bytes:
     values[gnss.x], _ = _quantise_physical(msg.get_signal_by_name(gnss.x), x_m)
     values[gnss.y], _ = _quantise_physical(msg.get_signal_by_name(gnss.y), y_m)
     if gnss.heading:
-        heading = (90.0 - math.degrees(psi_rad)) % 360.0
+        heading = schema.psi_rad_to_heading_deg(psi_rad)
         values[gnss.heading], _ = _quantise_physical(msg.get_signal_by_name(gnss.heading), heading)
     if gnss.valid:
         values[gnss.valid] = 1

@@ -7,12 +7,12 @@ the types here lets each stage import what it receives without importing the sta
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from prml2_edge.runtime.status import FrameStatus
+from prml2_edge.schema import heading_deg_to_psi_rad
 
 
 @dataclass(frozen=True)
@@ -32,10 +32,7 @@ class GnssFix:
     @property
     def psi_rad(self) -> float | None:
         """Heading counter-clockwise from east [rad] (the EKF's convention), wrapped to (-pi, pi]."""
-        if self.heading_deg is None:
-            return None
-        psi = math.pi / 2.0 - math.radians(self.heading_deg)
-        return math.atan2(math.sin(psi), math.cos(psi))
+        return None if self.heading_deg is None else heading_deg_to_psi_rad(self.heading_deg)
 
 
 @dataclass
