@@ -22,7 +22,7 @@ import cantools
 from prml2_edge import schema
 from prml2_edge.can.checksum import CHECKSUMS
 from prml2_edge.config import read_toml
-from prml2_edge.errors import ConfigError, DbcError
+from prml2_edge.errors import ConfigError, DbcError, reject_unknown_keys
 from prml2_edge.resources import resource_path
 
 _MAP_KEYS = {"name", "dbc", "description", "strict"}
@@ -115,9 +115,7 @@ class SignalMap:
 
 
 def _check_keys(where: str, table: dict, allowed: set[str]) -> None:
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise ConfigError(f"{where}: unknown key {unknown[0]!r} (allowed: {', '.join(sorted(allowed))})")
+    reject_unknown_keys(table, allowed, "{where}: unknown key {key} (allowed: {known})", where=where)
 
 
 def _table(where: str, value: object) -> dict:

@@ -18,7 +18,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import default_initial_covariance
-from prml2_edge.errors import ConfigError
+from prml2_edge.errors import ConfigError, reject_unknown_keys
 from prml2_edge.runtime.rows import GnssFix
 from prml2_edge.schema import EkfState, heading_deg_to_psi_rad
 
@@ -77,9 +77,7 @@ class InitialPose:
             raise ConfigError(f"{path}: initial pose file does not parse ({str(exc).splitlines()[0]})") from None
         if not isinstance(data, dict):
             raise ConfigError(f"{path}: initial pose file must hold an object with x_m, y_m, heading_deg")
-        unknown = sorted(set(data) - _FILE_KEYS)
-        if unknown:
-            raise ConfigError(f"{path}: unknown key {unknown[0]!r} (known: {', '.join(sorted(_FILE_KEYS))})")
+        reject_unknown_keys(data, _FILE_KEYS, "{path}: unknown key {key} (known: {known})", path=path)
         missing = [k for k in ("x_m", "y_m", "heading_deg") if k not in data]
         if missing:
             raise ConfigError(f"{path}: initial pose file lacks {', '.join(missing)}")
