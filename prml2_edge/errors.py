@@ -50,3 +50,15 @@ def reject_unknown_keys(data, known, message: str, error: type[Exception] = Conf
     unknown = sorted(set(data) - known)
     if unknown:
         raise error(message.format(key=repr(unknown[0]), known=", ".join(sorted(known)), **fields))
+
+
+def first_line(exc: BaseException, limit: int | None = None) -> str:
+    """The first line of ``str(exc)`` (stripped; the exception's type name when it has no text).
+
+    ``limit`` cuts the line to that many characters (a backend's message can be a page long).
+    """
+    text = str(exc).strip()
+    if not text:
+        return type(exc).__name__
+    line = text.splitlines()[0]
+    return line if limit is None else line[:limit]

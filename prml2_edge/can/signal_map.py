@@ -22,7 +22,7 @@ import cantools
 from prml2_edge import schema
 from prml2_edge.can.checksum import CHECKSUMS
 from prml2_edge.config import read_toml
-from prml2_edge.errors import ConfigError, DbcError, reject_unknown_keys
+from prml2_edge.errors import ConfigError, DbcError, first_line, reject_unknown_keys
 from prml2_edge.resources import resource_path
 
 _MAP_KEYS = {"name", "dbc", "description", "strict"}
@@ -221,7 +221,7 @@ def load_dbc(path: str | Path, strict: bool = True) -> cantools.database.can.Dat
     try:
         db = cantools.database.load_file(str(path), database_format="dbc", strict=strict)
     except Exception as exc:  # cantools raises several unrelated types on bad input
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        first = first_line(exc)
         raise DbcError(f"{path}: DBC does not parse ({first})") from exc
     return db
 

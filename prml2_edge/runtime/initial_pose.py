@@ -18,7 +18,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import default_initial_covariance
-from prml2_edge.errors import ConfigError, reject_unknown_keys
+from prml2_edge.errors import ConfigError, first_line, reject_unknown_keys
 from prml2_edge.runtime.rows import GnssFix
 from prml2_edge.schema import EkfState, heading_deg_to_psi_rad
 
@@ -74,7 +74,7 @@ class InitialPose:
         try:
             data = tomllib.loads(raw.decode()) if path.suffix == ".toml" else json.loads(raw)
         except (ValueError, UnicodeDecodeError) as exc:
-            raise ConfigError(f"{path}: initial pose file does not parse ({str(exc).splitlines()[0]})") from None
+            raise ConfigError(f"{path}: initial pose file does not parse ({first_line(exc)})") from None
         if not isinstance(data, dict):
             raise ConfigError(f"{path}: initial pose file must hold an object with x_m, y_m, heading_deg")
         reject_unknown_keys(data, _FILE_KEYS, "{path}: unknown key {key} (known: {known})", path=path)
