@@ -13,6 +13,7 @@ raises on the hot path.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import can
@@ -30,8 +31,7 @@ from prml2_edge.runtime.status import FrameStatus
 class _SignalPlan:
     index: int  # canonical index
     signal: str
-    scale: float
-    offset: float
+    to_si: Callable[[float, int], float]  # SignalSpec.to_si, bound once
     sign: str | None
     valid: str | None
     valid_value: int
@@ -80,7 +80,7 @@ class FrameDecoder:
         for spec in signal_map.signals:
             plan = self._plan(signal_map, db, spec.message)
             sig = schema.SIGNAL_BY_NAME[spec.name]
-            plan.signals.append(_SignalPlan(sig.index, spec.signal, spec.scale, spec.offset, spec.sign, spec.valid,
+            plan.signals.append(_SignalPlan(sig.index, spec.signal, spec.to_si, spec.sign, spec.valid,
                                             spec.valid_value, sig.min, sig.max))
         if signal_map.gnss is not None:
             self._plan(signal_map, db, signal_map.gnss.message).gnss = signal_map.gnss
@@ -149,9 +149,7 @@ class FrameDecoder:
         out = DecodedFrame(FrameStatus.USED, t_s, plan.name)
         n_out_of_range = n_nonfinite = n_invalid = 0
         for sp in plan.signals:
-            value = decoded[sp.signal] * sp.scale + sp.offset
-            if sp.sign is not None and decoded[sp.sign]:
-                value = -value
+            value = sp.to_si(decoded[sp.signal], decoded[sp.sign] if sp.sign is not None else 0)
             ok = sp.valid is None or int(decoded[sp.valid]) == sp.valid_value
             if not math.isfinite(value):
                 self.stats.signal_nonfinite[sp.index] += 1
