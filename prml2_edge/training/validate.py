@@ -22,10 +22,10 @@ import torch
 
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import Ekf, default_initial_covariance, default_process_noise
+from prml2_edge.evaluation.osd import drive_bias, osd_baseline_z
 from prml2_edge.guard import physics_guard
 from prml2_edge.progress import Progress
 from prml2_edge.training.model import Prml2Model
-from prml2_edge.training.osd_baseline import drive_bias, osd_baseline_z
 
 DR_WINDOW_S = 60.0
 
