@@ -124,7 +124,6 @@ class Assembler:
         self._pending_gnss: GnssFix | None = None
         self._discontinuity = False
         self.resyncs = 0
-        self.rows_emitted = 0
 
     @classmethod
     def for_map(cls, signal_map, **kwargs) -> Assembler:
@@ -153,7 +152,6 @@ class Assembler:
         self._pending_gnss = None
         self._discontinuity = False
         self._k_next += 1
-        self.rows_emitted += 1
         return row
 
     def step(self, frame: DecodedFrame, recv_ns: int = 0) -> tuple[FrameStatus, list[AssembledRow]]:

@@ -106,11 +106,6 @@ class FrameDecoder:
         """Arbitration IDs this decoder uses (for a bus-level receive filter)."""
         return sorted(self.plans)
 
-    def reset_counters(self) -> None:
-        """Forget the last alive counter of every message (after a bus restart)."""
-        for plan in self.plans.values():
-            plan.last_counter = None
-
     def step(self, msg: can.Message) -> DecodedFrame:
         """Decode one frame; never raises. ``msg.timestamp`` [s] becomes ``t_s``."""
         t_s = float(msg.timestamp)
