@@ -213,6 +213,24 @@ def shipped_map_path(name: str) -> Path:
     return resource_path("dbc", "maps", f"{name}.toml")
 
 
+SHIPPED_MAPS = ("prml2_onboard", "vw_mqb", "hyundai_2015_ccan")
+
+
+def resolve_map(name_or_path: str | Path) -> Path:
+    """A shipped map name (``prml2_onboard``, ``vw_mqb``, ``hyundai_2015_ccan``) or a path to a map TOML."""
+    text = str(name_or_path)
+    if text.endswith(".toml") or "/" in text or "\\" in text:
+        path = Path(text)
+        if not path.is_file():
+            raise ConfigError(f"{path}: signal map not found")
+        return path
+    try:
+        return shipped_map_path(text)
+    except Exception:
+        raise ConfigError(f"unknown signal map {text!r}; shipped maps: {', '.join(SHIPPED_MAPS)} "
+                          "(or give a path to a map .toml)") from None
+
+
 def load_dbc(path: str | Path, strict: bool = True) -> cantools.database.can.Database:
     """Load a DBC with cantools; any parse problem becomes one :class:`DbcError` line."""
     path = Path(path)

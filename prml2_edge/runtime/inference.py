@@ -4,7 +4,7 @@ The session is configured for a small, predictable edge footprint: ``intra_op_nu
 from the config (default 1), one inter-op thread, thread spinning off unless asked for (an idle
 spinning thread would steal the CPU the CAN loop needs; with 2+ threads spinning tightens the
 tail latency of a large model), all graph optimisations. Providers come
-from :func:`prml2_edge.service.providers.select_providers` (TensorRT -> CUDA -> CPU,
+from :func:`prml2_edge.runtime.providers.select_providers` (TensorRT -> CUDA -> CPU,
 whichever this onnxruntime offers).
 
 Graph contract (:mod:`prml2_edge.model_meta`): input ``onboard`` float32 (1, L, 9) raw SI;
@@ -88,7 +88,7 @@ class OnnxModel:
                  trt_cache_dir: str = "~/.cache/prml2/trt", trt_fp16: bool = False, spinning: bool = False) -> None:
         import onnxruntime as ort
 
-        from prml2_edge.service.providers import select_providers
+        from prml2_edge.runtime.providers import select_providers
 
         self.path = Path(path)
         if not self.path.is_file():

@@ -22,7 +22,7 @@ import can
 import numpy as np
 
 from prml2_edge import schema
-from prml2_edge.can.signal_map import SignalMap, load_map_and_dbc, shipped_map_path
+from prml2_edge.can.signal_map import SignalMap, load_map_and_dbc, resolve_map
 from prml2_edge.errors import ConfigError
 from prml2_edge.runtime.assembler import Assembler
 from prml2_edge.runtime.decode import FrameDecoder
@@ -36,24 +36,6 @@ from prml2_edge.runtime.status import PoseStatus
 from prml2_edge.schema import EkfState
 
 log = logging.getLogger(__name__)
-
-SHIPPED_MAPS = ("prml2_onboard", "vw_mqb", "hyundai_2015_ccan")
-
-
-def resolve_map(name_or_path: str | Path) -> Path:
-    """A shipped map name (``prml2_onboard``, ``vw_mqb``, ``hyundai_2015_ccan``) or a path to a map TOML."""
-    text = str(name_or_path)
-    if text.endswith(".toml") or "/" in text or "\\" in text:
-        path = Path(text)
-        if not path.is_file():
-            raise ConfigError(f"{path}: signal map not found")
-        return path
-    try:
-        return shipped_map_path(text)
-    except Exception:
-        raise ConfigError(f"unknown signal map {text!r}; shipped maps: {', '.join(SHIPPED_MAPS)} "
-                          "(or give a path to a map .toml)") from None
-
 
 class MemorySink:
     """Keeps every step's time, state, uncertainty and status in memory (tests, demo, evaluation)."""

@@ -79,7 +79,7 @@ def check_can_link(cfg: RuntimeConfig, sys_class_net: Path = Path("/sys/class/ne
 def check_providers(cfg: RuntimeConfig) -> Check:
     import onnxruntime as ort
 
-    from prml2_edge.service.providers import select_providers
+    from prml2_edge.runtime.providers import select_providers
 
     try:
         choice = select_providers(cfg.model.providers, trt_cache_dir=cfg.model.trt_cache_dir,
@@ -94,8 +94,7 @@ def check_providers(cfg: RuntimeConfig) -> Check:
 
 
 def check_map_and_dbc(cfg: RuntimeConfig) -> Check:
-    from prml2_edge.can.signal_map import load_map_and_dbc
-    from prml2_edge.runtime.pipeline import resolve_map
+    from prml2_edge.can.signal_map import load_map_and_dbc, resolve_map
 
     try:
         smap, db, dbc_path = load_map_and_dbc(resolve_map(cfg.signals.map), cfg.signals.dbc)
