@@ -66,7 +66,10 @@ class StuckCheck:
 # 2 m/s^2 at >= 5 m/s: each implies a yaw-rate change of several 1.28 deg/s sensor steps.
 # Simulated drives (seed 3, 5, 11; up to 50 s without a yaw-rate step) stay below 0.16 rad and
 # 0.45 m/s^2 while the yaw rate holds, so a healthy sensor does not trip it.
-YAW_RATE_STUCK = StuckCheck(index=2, hold_s=1.0, witness=(1, 3), span=(0.35, 2.0))
+_SIG = {name: s.index for name, s in schema.SIGNAL_BY_NAME.items()}
+_SPEEDOMETER = _SIG["speedometer_mps"]
+YAW_RATE_STUCK = StuckCheck(index=_SIG["yaw_rate_radps"], hold_s=1.0,
+                            witness=(_SIG["steering_wheel_angle_rad"], _SIG["lat_accel_mps2"]), span=(0.35, 2.0))
 
 
 class Assembler:
@@ -249,7 +252,7 @@ class Assembler:
         for c in self.stuck_checks:
             if self._frozen[c.index]:
                 continue
-            moving = self.values[0] >= c.min_speed_mps and np.isfinite(self.last_t_s[0])
+            moving = self.values[_SPEEDOMETER] >= c.min_speed_mps and np.isfinite(self.last_t_s[_SPEEDOMETER])
             spans = self._stuck_hi[c.index] - self._stuck_lo[c.index]
             if moving and t_k - self._stuck_since[c.index] >= c.hold_s - self.eps_s and \
                     bool(np.any(spans >= np.asarray(c.span))):

@@ -201,7 +201,8 @@ class Pipeline:
             if out.status is PoseStatus.INITIALISING:
                 parts.append("INITIALISING (waiting for a GNSS fix)")
             else:
-                parts.append(f"pose ({out.x[0]:.1f}, {out.x[1]:.1f}) m +-{out.pos_std_m:.1f} {out.status.name}"
+                p_x, p_y = out.x[EkfState.POS]
+                parts.append(f"pose ({p_x:.1f}, {p_y:.1f}) m +-{out.pos_std_m:.1f} {out.status.name}"
                              + (f" outage {out.outage_s:.0f} s" if out.gnss_outage else ""))
         return " | ".join(parts)
 
@@ -215,8 +216,10 @@ class Pipeline:
         last = None
         if self.last is not None:
             out = self.last
-            last = {"t_s": out.t_s, "x_m": out.x[0], "y_m": out.x[1], "psi_rad": out.x[2], "v_x_mps": out.x[4],
-                    "pos_std_m": out.pos_std_m, "status": out.status.name, "outage_s": out.outage_s}
+            p_x, p_y = out.x[EkfState.POS]
+            last = {"t_s": out.t_s, "x_m": p_x, "y_m": p_y, "psi_rad": out.x[EkfState.YAW.start],
+                    "v_x_mps": out.x[EkfState.VEL.start], "pos_std_m": out.pos_std_m, "status": out.status.name,
+                    "outage_s": out.outage_s}
             last = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in last.items()}
         sinks = {type(s).__name__: {k: getattr(s, k) for k in ("rows", "frames", "errors", "last_error")
                                     if hasattr(s, k)} for s in self.sinks}

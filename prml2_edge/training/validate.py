@@ -140,7 +140,8 @@ def dead_reckon(z_mean: np.ndarray, z_var: np.ndarray, z_gt: np.ndarray, pose_gt
     for k in range(1, n_steps):
         t = start + k
         ekf.step(z_mean[t], z_var[t])
-        errors[k] = math.hypot(ekf.x[0] - pose_gt[t, 0], ekf.x[1] - pose_gt[t, 1])
+        d_x, d_y = ekf.x[schema.EkfState.POS] - pose_gt[t, :2]
+        errors[k] = math.hypot(d_x, d_y)
     return errors
 
 
