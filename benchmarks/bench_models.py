@@ -22,10 +22,10 @@ import numpy as np
 import torch
 
 from prml2_edge import schema
-from prml2_edge.bench.quantize import quantize_int8, quantize_prml2
 from prml2_edge.training.export_onnx import export_onnx, metadata_for, model_from_onnx
 from prml2_edge.training.model import Prml2Model
 from prml2_edge.training.presets import get_preset
+from prml2_edge.training.quantize import quantize_int8, quantize_prml2
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paths import DATASET, MODEL_DIR, REPO, SHIPPED_EDGE  # noqa: E402

@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/soak.py --minutes 60 --json out/soak.json
 
 Simulates ``--minutes`` of driving, encodes it with the project DBC (GNSS for the first 10 s),
-injects one fault every ``--fault-period`` seconds (:func:`prml2_edge.runtime.faults.fault_schedule`,
+injects one fault every ``--fault-period`` seconds (:func:`prml2_edge.testing.faults.fault_schedule`,
 cycling through every fault kind), writes the faulty log and replays it through the runtime's
 own path (``LogReplay`` over a python-can virtual bus -> ``Pipeline``). Reports frames/s,
 rows/s, the resident set size (RSS) at the start of the replay, at every 10 % and at the end,
@@ -67,10 +67,10 @@ def main(argv: list[str] | None = None) -> int:
     from prml2_edge.can.signal_map import load_dbc
     from prml2_edge.data.simulate import simulate_drive
     from prml2_edge.resources import project_dbc_path
-    from prml2_edge.runtime.faults import InjectionCounts, fault_schedule, inject
     from prml2_edge.runtime.localizer import LocalizerConfig
     from prml2_edge.runtime.pipeline import Pipeline
     from prml2_edge.runtime.source import LogReplay
+    from prml2_edge.testing.faults import InjectionCounts, fault_schedule, inject
 
     tmp = tempfile.TemporaryDirectory() if args.workdir is None else None
     work = Path(args.workdir or tmp.name)  # type: ignore[union-attr]

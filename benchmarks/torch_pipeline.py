@@ -17,12 +17,12 @@ import numpy as np
 import torch
 
 from prml2_edge import schema
-from prml2_edge.can.signal_map import load_map_and_dbc
+from prml2_edge.can.signal_map import load_map_and_dbc, resolve_map
 from prml2_edge.runtime.assembler import Assembler
 from prml2_edge.runtime.decode import FrameDecoder
 from prml2_edge.runtime.initial_pose import InitialPose, initial_state
 from prml2_edge.runtime.latency import LatencyRecorder
-from prml2_edge.runtime.pipeline import Pipeline, resolve_map
+from prml2_edge.runtime.pipeline import Pipeline
 from prml2_edge.runtime.stats import FrameStats
 from prml2_edge.runtime.window import Window
 from prml2_edge.training import ekf_torch

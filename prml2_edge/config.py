@@ -15,7 +15,7 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from prml2_edge.errors import ConfigError, ModelError
+from prml2_edge.errors import ConfigError, ModelError, reject_unknown_keys
 
 
 @dataclass(frozen=True)
@@ -125,9 +125,7 @@ def _coerce(where: str, value: object, tp: object) -> object:
 def _build(cls: type, table: dict, where: str):
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(table) - names)
-    if unknown:
-        raise ConfigError(f"{where}: unknown key {unknown[0]!r} (known: {', '.join(sorted(names))})")
+    reject_unknown_keys(table, names, "{where}: unknown key {key} (known: {known})", where=where)
     kwargs = {}
     for name, value in table.items():
         tp = hints[name]

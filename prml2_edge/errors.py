@@ -37,3 +37,28 @@ class MissingExtraError(Prml2Error):
         )
         self.module = module
         self.extra = extra
+
+
+def reject_unknown_keys(data, known, message: str, error: type[Exception] = ConfigError, **fields) -> None:
+    """Raise ``error`` for the first key of ``data`` (sorted) that is not in ``known``; else return.
+
+    ``message`` is a :meth:`str.format` template: ``{key}`` is the key's ``repr``, ``{known}``
+    the known keys sorted and joined with ``", "``, any other field comes from ``fields``
+    (substituted values are not parsed again, so a path with braces is safe).
+    """
+    known = set(known)
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise error(message.format(key=repr(unknown[0]), known=", ".join(sorted(known)), **fields))
+
+
+def first_line(exc: BaseException, limit: int | None = None) -> str:
+    """The first line of ``str(exc)`` (stripped; the exception's type name when it has no text).
+
+    ``limit`` cuts the line to that many characters (a backend's message can be a page long).
+    """
+    text = str(exc).strip()
+    if not text:
+        return type(exc).__name__
+    line = text.splitlines()[0]
+    return line if limit is None else line[:limit]

@@ -18,7 +18,7 @@ import json
 from dataclasses import asdict, dataclass, field
 
 from prml2_edge import schema
-from prml2_edge.errors import ModelError
+from prml2_edge.errors import ModelError, reject_unknown_keys
 
 METADATA_KEY = "prml2"
 FORMAT = "prml2-onnx/1"
@@ -75,10 +75,8 @@ class ModelMetadata:
             raise ModelError(f"{source}: PRML2 metadata is not valid JSON ({exc})") from exc
         if not isinstance(data, dict) or data.get("format") != FORMAT:
             raise ModelError(f"{source}: not a PRML2 model (metadata format {data.get('format')!r}, want {FORMAT!r})")
-        known = set(cls.__dataclass_fields__)
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ModelError(f"{source}: unknown PRML2 metadata key {unknown[0]!r}; re-export with this version")
+        reject_unknown_keys(data, cls.__dataclass_fields__, "{source}: unknown PRML2 metadata key {key}; re-export "
+                            "with this version", ModelError, source=source)
         try:
             return cls(**data)
         except TypeError as exc:

@@ -9,10 +9,7 @@ from __future__ import annotations
 import os
 import sys
 import time
-from collections.abc import Iterable, Iterator
-from typing import TextIO, TypeVar
-
-T = TypeVar("T")
+from typing import TextIO
 
 
 class Progress:
@@ -83,14 +80,3 @@ class Progress:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def progress(iterable: Iterable[T], total: int | None = None, desc: str = "", unit: str = "it",
-             enabled: bool | None = None) -> Iterator[T]:
-    """Iterate with a progress bar (like ``tqdm(iterable)``)."""
-    if total is None and hasattr(iterable, "__len__"):
-        total = len(iterable)  # type: ignore[arg-type]
-    with Progress(total, desc, unit, enabled=enabled) as bar:
-        for item in iterable:
-            yield item
-            bar.update()

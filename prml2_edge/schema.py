@@ -24,6 +24,7 @@ DT_S = 1.0 / SAMPLE_RATE_HZ  # 0.02 s
 G_MPS2 = 9.80665  # standard gravity
 KMH_TO_MPS = 1.0 / 3.6
 DEG_TO_RAD = math.pi / 180.0
+RAD_TO_DEG = 180.0 / math.pi
 
 # Window geometry (paper Sec. III-B; method.md "Model").
 WINDOW_LEN = 250  # L: 5 s at 50 Hz
@@ -166,6 +167,30 @@ class CalState:
     NAMES = ("yaw_rate_offset_radps", "wheel_scale", "model_omega_bias_radps")
     FULL_DIM = 11  # EkfState.DIM + DIM
     FULL_NAMES = EkfState.NAMES + NAMES
+
+
+# Heading conventions: people, GNSS receivers, DBCs and ReV-StED's ``ins_yaw`` give a true heading
+# clockwise from north [deg]; the EKF's ``psi`` is counter-clockwise from east [rad].
+def heading_deg_to_psi(heading_deg):
+    """True heading clockwise from north [deg] -> psi counter-clockwise from east [rad], not wrapped.
+
+    Plain arithmetic: floats and NumPy arrays alike (unwrap an array's result yourself).
+    """
+    return math.pi / 2.0 - heading_deg * DEG_TO_RAD
+
+
+def heading_deg_to_psi_rad(heading_deg: float) -> float:
+    """True heading clockwise from north [deg] -> psi counter-clockwise from east [rad], wrapped to (-pi, pi]."""
+    psi = heading_deg_to_psi(heading_deg)
+    return math.atan2(math.sin(psi), math.cos(psi))
+
+
+def psi_rad_to_heading_deg(psi_rad):
+    """psi counter-clockwise from east [rad] -> true heading clockwise from north [deg] in [0, 360).
+
+    Plain arithmetic: floats and NumPy arrays alike.
+    """
+    return (90.0 - psi_rad * RAD_TO_DEG) % 360.0
 
 
 # Measurement model: H selects z (in z order) from the EKF state.

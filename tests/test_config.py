@@ -72,8 +72,8 @@ def test_spinning_reaches_the_onnxruntime_session(tmp_path):
 
     from runtime_models import make_kinematic_model
 
-    from prml2_edge.runtime.app import build_pipeline, config_from_args
-    from prml2_edge.runtime.cli_args import add_pipeline_arguments
+    from prml2_edge.cli.runtime_app import build_pipeline, config_from_args
+    from prml2_edge.cli.runtime_args import add_pipeline_arguments
 
     model = make_kinematic_model(tmp_path / "k.onnx")
     cfg = config_from_dict({"model": {"path": str(model), "threads": 2, "spinning": True},

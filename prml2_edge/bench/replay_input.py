@@ -12,7 +12,8 @@ from pathlib import Path
 
 import can
 
-from prml2_edge.runtime.initial_pose import InitialPose, psi_rad_to_heading_deg
+from prml2_edge.runtime.initial_pose import InitialPose
+from prml2_edge.schema import psi_rad_to_heading_deg
 
 DEFAULT_MAP = "prml2_onboard"
 

@@ -117,92 +117,33 @@ def encode_drive_to_log(drive, out_path: str | Path, signal_map_path: str | Path
     t0 = float(drive.t_s[0])
     duration_s = n * schema.DT_S
 
-    plans: list[_MessagePlan] = []
-    for msg_name in smap.message_names:
-        specs = [s for s in smap.signals if s.message == msg_name]
-        message = db.get_message_by_name(msg_name)
-        checks = smap.messages.get(msg_name)
-        counter = checks.counter if checks else None
-        checksum = checks.checksum if checks else None
-        fn = checksum_function(checks.checksum_algorithm) if checks and checks.checksum_algorithm else None
-        in_byte0 = False
-        if checksum is not None:
-            cs = message.get_signal_by_name(checksum)
-            in_byte0 = cs.start == 0 and cs.length == 8 and cs.byte_order == "little_endian"
-        fed = {s.signal for s in specs} | {s.valid for s in specs if s.valid} | {s.sign for s in specs if s.sign}
-        fed |= {x for x in (counter, checksum) if x}
-        defaults = {sig.name: _default_value(sig) for sig in message.signals if sig.name not in fed}
-        plans.append(_MessagePlan(message, max(s.rate_hz for s in specs), specs, counter, checksum, fn, in_byte0,
-                                  defaults))
-
-    # (timestamp, plan index or -1 for GNSS, sample index)
-    events: list[tuple[float, int, int]] = []
-    for pi, plan in enumerate(plans):
-        k = np.arange(int(math.floor(duration_s * plan.rate_hz - 1e-9)) + 1)
-        t_rel = k / plan.rate_hz
-        idx = np.minimum((t_rel / schema.DT_S + 1e-6).astype(np.int64), n - 1)
-        events.extend(zip((t0 + t_rel).tolist(), [pi] * len(k), idx.tolist(), strict=True))
+    plans = [_plan_message(smap, db, name) for name in smap.message_names]
+    with_gnss = gnss_seconds > 0 and smap.gnss is not None and drive.pose_gt is not None
+    events = _schedule(plans, t0, duration_s, n, min(gnss_seconds, duration_s) if with_gnss else 0.0)
     gnss_frames = 0
-    if gnss_seconds > 0 and smap.gnss is not None and drive.pose_gt is not None:
-        k = np.arange(int(math.floor(min(gnss_seconds, duration_s) * GNSS_RATE_HZ - 1e-9)) + 1)
-        t_rel = k / GNSS_RATE_HZ
-        idx = np.minimum((t_rel / schema.DT_S + 1e-6).astype(np.int64), n - 1)
-        events.extend(zip((t0 + t_rel).tolist(), [-1] * len(k), idx.tolist(), strict=True))
-    events.sort(key=lambda e: (e[0], e[1]))
-
     gnss_msg = db.get_message_by_name(smap.gnss.message) if smap.gnss is not None else None
     counters = [0] * len(plans)
     per_message = {p.message.name: 0 for p in plans}
     clipped: dict[str, int] = {}
     invalid: dict[str, int] = {}
-    onboard = np.asarray(drive.onboard, dtype=np.float64)
-    onboard_rows = onboard.tolist()
+    onboard_rows = np.asarray(drive.onboard, dtype=np.float64).tolist()
     bar = Progress(len(events), desc="encode", unit="frames", enabled=None if progress else False)
     writer = _writer_for(out_path)
     try:
         for i, (ts, pi, si) in enumerate(events):
             if pi < 0:
                 data = _encode_gnss(gnss_msg, smap.gnss, drive.pose_gt[si])
-                frame_id, is_ext = gnss_msg.frame_id, gnss_msg.is_extended_frame
+                msg = gnss_msg
                 gnss_frames += 1
             else:
                 plan = plans[pi]
                 msg = plan.message
-                values = dict(plan.defaults)
-                row = onboard_rows[si]
-                for spec in plan.specs:
-                    v_si = row[schema.SIGNAL_BY_NAME[spec.name].index]
-                    finite = math.isfinite(v_si)
-                    if not finite:
-                        invalid[spec.name] = invalid.get(spec.name, 0) + 1
-                        v_si = 0.0
-                    phys, sign_bit = spec.from_si(v_si)
-                    phys, was_clipped = _quantise_physical(msg.get_signal_by_name(spec.signal), phys)
-                    if was_clipped:
-                        clipped[spec.name] = clipped.get(spec.name, 0) + 1
-                    values[spec.signal] = phys
-                    if spec.sign:
-                        values[spec.sign] = sign_bit
-                    if spec.valid:
-                        values[spec.valid] = spec.valid_value if finite else 1 - spec.valid_value
-                if plan.counter:
-                    bits = msg.get_signal_by_name(plan.counter).length
-                    values[plan.counter] = counters[pi] % (1 << bits)
-                    counters[pi] += 1
-                if plan.checksum:
-                    values[plan.checksum] = 0
-                data = bytearray(msg.encode(values, scaling=True, strict=False))
-                if plan.checksum and plan.checksum_fn is not None:
-                    crc = plan.checksum_fn(msg.frame_id, bytes(data))
-                    if plan.checksum_in_byte0:
-                        data[0] = crc
-                    else:
-                        values[plan.checksum] = crc
-                        data = bytearray(msg.encode(values, scaling=True, strict=False))
-                frame_id, is_ext = msg.frame_id, msg.is_extended_frame
+                data = _encode_onboard(plan, onboard_rows[si], counters[pi], clipped, invalid)
+                counters[pi] += 1
                 per_message[msg.name] += 1
-            writer.on_message_received(can.Message(timestamp=ts, arbitration_id=frame_id, is_extended_id=is_ext,
-                                                   data=bytes(data), channel=channel))
+            writer.on_message_received(can.Message(timestamp=ts, arbitration_id=msg.frame_id,
+                                                   is_extended_id=msg.is_extended_frame, data=bytes(data),
+                                                   channel=channel))
             if i % 2000 == 1999:
                 bar.update(2000)
         bar.update(len(events) % 2000)
@@ -216,6 +157,90 @@ def encode_drive_to_log(drive, out_path: str | Path, signal_map_path: str | Path
     }
 
 
+def _plan_message(smap, db, msg_name: str) -> _MessagePlan:
+    """How to build frames of ``msg_name``: the signals the map feeds, integrity checks, defaults for the rest."""
+    specs = [s for s in smap.signals if s.message == msg_name]
+    message = db.get_message_by_name(msg_name)
+    checks = smap.messages.get(msg_name)
+    counter = checks.counter if checks else None
+    checksum = checks.checksum if checks else None
+    fn = checksum_function(checks.checksum_algorithm) if checks and checks.checksum_algorithm else None
+    in_byte0 = False
+    if checksum is not None:
+        cs = message.get_signal_by_name(checksum)
+        in_byte0 = cs.start == 0 and cs.length == 8 and cs.byte_order == "little_endian"
+    fed = {s.signal for s in specs} | {s.valid for s in specs if s.valid} | {s.sign for s in specs if s.sign}
+    fed |= {x for x in (counter, checksum) if x}
+    defaults = {sig.name: _default_value(sig) for sig in message.signals if sig.name not in fed}
+    return _MessagePlan(message, max(s.rate_hz for s in specs), specs, counter, checksum, fn, in_byte0, defaults)
+
+
+def _schedule(plans: list[_MessagePlan], t0: float, duration_s: float, n: int,
+              gnss_s: float) -> list[tuple[float, int, int]]:
+    """Every frame to send, in time order: ``(timestamp, plan index or -1 for GNSS, sample index)``.
+
+    GNSS fixes go out at :data:`GNSS_RATE_HZ` for the first ``gnss_s`` seconds (none when 0).
+    """
+    events: list[tuple[float, int, int]] = []
+    for pi, plan in enumerate(plans):
+        events.extend(_ticks(t0, duration_s, plan.rate_hz, n, pi))
+    if gnss_s > 0:
+        events.extend(_ticks(t0, gnss_s, GNSS_RATE_HZ, n, -1))
+    events.sort(key=lambda e: (e[0], e[1]))
+    return events
+
+
+def _ticks(t0: float, duration_s: float, rate_hz: float, n: int, pi: int) -> list[tuple[float, int, int]]:
+    """Send events ``(timestamp, pi, sample index)`` at ``rate_hz`` over ``duration_s`` from ``t0``.
+
+    Each event carries the newest 50 Hz sample at its time (clamped to the drive's ``n`` samples).
+    """
+    k = np.arange(int(math.floor(duration_s * rate_hz - 1e-9)) + 1)
+    t_rel = k / rate_hz
+    idx = np.minimum((t_rel / schema.DT_S + 1e-6).astype(np.int64), n - 1)
+    return list(zip((t0 + t_rel).tolist(), [pi] * len(k), idx.tolist(), strict=True))
+
+
+def _encode_onboard(plan: _MessagePlan, row: list[float], count: int, clipped: dict[str, int],
+                    invalid: dict[str, int]) -> bytearray:
+    """One frame of ``plan.message`` from the onboard sample ``row`` (SI); ``count`` is its alive counter.
+
+    Non-finite values are sent as 0 with the validity bit cleared (counted in ``invalid``), values
+    outside a DBC signal's range are clipped (counted in ``clipped``); the checksum is computed last.
+    """
+    msg = plan.message
+    values = dict(plan.defaults)
+    for spec in plan.specs:
+        v_si = row[schema.SIGNAL_BY_NAME[spec.name].index]
+        finite = math.isfinite(v_si)
+        if not finite:
+            invalid[spec.name] = invalid.get(spec.name, 0) + 1
+            v_si = 0.0
+        phys, sign_bit = spec.from_si(v_si)
+        phys, was_clipped = _quantise_physical(msg.get_signal_by_name(spec.signal), phys)
+        if was_clipped:
+            clipped[spec.name] = clipped.get(spec.name, 0) + 1
+        values[spec.signal] = phys
+        if spec.sign:
+            values[spec.sign] = sign_bit
+        if spec.valid:
+            values[spec.valid] = spec.valid_value if finite else 1 - spec.valid_value
+    if plan.counter:
+        bits = msg.get_signal_by_name(plan.counter).length
+        values[plan.counter] = count % (1 << bits)
+    if plan.checksum:
+        values[plan.checksum] = 0
+    data = bytearray(msg.encode(values, scaling=True, strict=False))
+    if plan.checksum and plan.checksum_fn is not None:
+        crc = plan.checksum_fn(msg.frame_id, bytes(data))
+        if plan.checksum_in_byte0:
+            data[0] = crc
+        else:
+            values[plan.checksum] = crc
+            data = bytearray(msg.encode(values, scaling=True, strict=False))
+    return data
+
+
 def _encode_gnss(msg, gnss, pose_row: np.ndarray) -> bytes:
     """GNSS fix frame: x east [m], y north [m], heading clockwise from north [deg, 0-360)."""
     values = {sig.name: _default_value(sig) for sig in msg.signals}
@@ -223,7 +248,7 @@ def _encode_gnss(msg, gnss, pose_row: np.ndarray) -> bytes:
     values[gnss.x], _ = _quantise_physical(msg.get_signal_by_name(gnss.x), x_m)
     values[gnss.y], _ = _quantise_physical(msg.get_signal_by_name(gnss.y), y_m)
     if gnss.heading:
-        heading = (90.0 - math.degrees(psi_rad)) % 360.0
+        heading = schema.psi_rad_to_heading_deg(psi_rad)
         values[gnss.heading], _ = _quantise_physical(msg.get_signal_by_name(gnss.heading), heading)
     if gnss.valid:
         values[gnss.valid] = 1

@@ -22,7 +22,7 @@ import cantools
 from prml2_edge import schema
 from prml2_edge.can.checksum import CHECKSUMS
 from prml2_edge.config import read_toml
-from prml2_edge.errors import ConfigError, DbcError
+from prml2_edge.errors import ConfigError, DbcError, first_line, reject_unknown_keys
 from prml2_edge.resources import resource_path
 
 _MAP_KEYS = {"name", "dbc", "description", "strict"}
@@ -115,9 +115,7 @@ class SignalMap:
 
 
 def _check_keys(where: str, table: dict, allowed: set[str]) -> None:
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise ConfigError(f"{where}: unknown key {unknown[0]!r} (allowed: {', '.join(sorted(allowed))})")
+    reject_unknown_keys(table, allowed, "{where}: unknown key {key} (allowed: {known})", where=where)
 
 
 def _table(where: str, value: object) -> dict:
@@ -215,6 +213,24 @@ def shipped_map_path(name: str) -> Path:
     return resource_path("dbc", "maps", f"{name}.toml")
 
 
+SHIPPED_MAPS = ("prml2_onboard", "vw_mqb", "hyundai_2015_ccan")
+
+
+def resolve_map(name_or_path: str | Path) -> Path:
+    """A shipped map name (``prml2_onboard``, ``vw_mqb``, ``hyundai_2015_ccan``) or a path to a map TOML."""
+    text = str(name_or_path)
+    if text.endswith(".toml") or "/" in text or "\\" in text:
+        path = Path(text)
+        if not path.is_file():
+            raise ConfigError(f"{path}: signal map not found")
+        return path
+    try:
+        return shipped_map_path(text)
+    except Exception:
+        raise ConfigError(f"unknown signal map {text!r}; shipped maps: {', '.join(SHIPPED_MAPS)} "
+                          "(or give a path to a map .toml)") from None
+
+
 def load_dbc(path: str | Path, strict: bool = True) -> cantools.database.can.Database:
     """Load a DBC with cantools; any parse problem becomes one :class:`DbcError` line."""
     path = Path(path)
@@ -223,7 +239,7 @@ def load_dbc(path: str | Path, strict: bool = True) -> cantools.database.can.Dat
     try:
         db = cantools.database.load_file(str(path), database_format="dbc", strict=strict)
     except Exception as exc:  # cantools raises several unrelated types on bad input
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        first = first_line(exc)
         raise DbcError(f"{path}: DBC does not parse ({first})") from exc
     return db
 

@@ -71,11 +71,11 @@ def run(args: argparse.Namespace) -> int:
     from prml2_edge.bench.flops import gemm_shapes, inference_flops
     from prml2_edge.bench.latency import build_pipeline, measure_steps, open_session_model
     from prml2_edge.bench.machine import gemm_rate, load_average, machine_info, usable_cores
-    from prml2_edge.bench.quantize import int8_available, quantize_prml2
     from prml2_edge.bench.replay_input import simulated_frames
     from prml2_edge.errors import ConfigError
     from prml2_edge.runtime.inference import default_model_path
     from prml2_edge.runtime.latency import DEADLINE_MS, PAPER_INFER_MS
+    from prml2_edge.training.quantize import int8_available, quantize_prml2
 
     if args.seconds * schema.SAMPLE_RATE_HZ <= schema.WINDOW_LEN + args.warmup_steps:
         raise ConfigError(f"--seconds {args.seconds:g} is too short: the first {schema.WINDOW_LEN} steps fill the "

@@ -23,9 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from prml2_edge.cli.runtime_app import summary_lines, write_summary_json
     from prml2_edge.errors import ConfigError
     from prml2_edge.progress import Progress
-    from prml2_edge.runtime.app import summary_lines, write_summary_json
     from prml2_edge.runtime.demo import run_demo
 
     if not 10.0 <= args.seconds <= 3600.0:

@@ -9,7 +9,7 @@ NEEDS: tuple[tuple[str, str], ...] = ()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from prml2_edge.runtime.cli_args import add_pipeline_arguments
+    from prml2_edge.cli.runtime_args import add_pipeline_arguments
 
     parser.add_argument("log", metavar="LOG", help="CAN log: .log (candump), .asc, .blf, .trc, .csv (python-can)")
     parser.add_argument("--realtime", action="store_true", help="keep the log's original timing")
@@ -26,9 +26,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import can
 
+    from prml2_edge.cli.runtime_app import build_pipeline, config_from_args, summary_lines, write_summary_json
     from prml2_edge.errors import DataError
     from prml2_edge.progress import Progress
-    from prml2_edge.runtime.app import build_pipeline, config_from_args, summary_lines, write_summary_json
     from prml2_edge.runtime.pipeline import run_source
     from prml2_edge.runtime.sinks import CanSink
     from prml2_edge.runtime.source import LogReplay, scan_log

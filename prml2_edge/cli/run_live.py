@@ -9,7 +9,7 @@ NEEDS: tuple[tuple[str, str], ...] = ()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from prml2_edge.runtime.cli_args import add_pipeline_arguments
+    from prml2_edge.cli.runtime_args import add_pipeline_arguments
 
     g = parser.add_argument_group("CAN interface")
     g.add_argument("--interface", help="python-can interface: socketcan (default), pcan, kvaser, vector, virtual, ...")
@@ -29,7 +29,7 @@ def run(args: argparse.Namespace) -> int:
     import threading
     import time
 
-    from prml2_edge.runtime.app import build_pipeline, config_from_args, summary_lines, write_summary_json
+    from prml2_edge.cli.runtime_app import build_pipeline, config_from_args, summary_lines, write_summary_json
     from prml2_edge.runtime.pipeline import run_source
     from prml2_edge.runtime.sinks import CanSink
     from prml2_edge.runtime.source import BusSource, open_bus

@@ -31,7 +31,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.data.revsted import Drive, load_drive, write_drive_csv
-from prml2_edge.errors import ConfigError, DataError
+from prml2_edge.errors import ConfigError, DataError, reject_unknown_keys
 from prml2_edge.progress import Progress
 
 FORMAT = "prml2-dataset/1"
@@ -76,10 +76,7 @@ def resolve_recipe(recipe: str | dict) -> dict:
         raise ConfigError("a recipe dict needs a non-empty 'drives' list")
     drives = []
     for i, d in enumerate(recipe["drives"]):
-        unknown = sorted(set(d) - _DRIVE_KEYS)
-        if unknown:
-            allowed = ", ".join(sorted(_DRIVE_KEYS))
-            raise ConfigError(f"recipe drive {i}: unknown key {unknown[0]!r} (allowed: {allowed})")
+        reject_unknown_keys(d, _DRIVE_KEYS, "recipe drive {i}: unknown key {key} (allowed: {known})", i=i)
         missing = [k for k in ("family", "mu", "seed", "minutes") if k not in d]
         if missing:
             raise ConfigError(f"recipe drive {i}: missing key(s) {', '.join(missing)}")

@@ -296,7 +296,7 @@ def load_drive(path: str | Path, *, require_ground_truth: bool = False) -> Drive
         z_gt = np.stack([column(c) * scale for c, scale in Z_COLUMNS], axis=1)
     if all(c in col for c in POSE_COLUMNS):
         x_m, y_m, yaw_deg = (column(c) for c in POSE_COLUMNS)
-        psi_rad = np.unwrap(np.pi / 2.0 - np.radians(yaw_deg))
+        psi_rad = np.unwrap(schema.heading_deg_to_psi(yaw_deg))
         pose_gt = np.stack([x_m, y_m, psi_rad], axis=1)
     if require_ground_truth and (z_gt is None or pose_gt is None):
         need = ", ".join(z_names + list(POSE_COLUMNS))
@@ -342,7 +342,7 @@ def write_drive_csv(drive: Drive, path: str | Path) -> None:
             cols.append(drive.z_gt[:, k] / scale)
             fmts.append("%.6f")
     if drive.pose_gt is not None:
-        yaw_deg = np.mod(90.0 - np.degrees(drive.pose_gt[:, 2]), 360.0)
+        yaw_deg = schema.psi_rad_to_heading_deg(drive.pose_gt[:, 2])
         names += list(POSE_COLUMNS)
         cols += [drive.pose_gt[:, 0], drive.pose_gt[:, 1], yaw_deg]
         fmts += ["%.4f", "%.4f", "%.5f"]

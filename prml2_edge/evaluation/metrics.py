@@ -56,3 +56,52 @@ def coverage(results: Sequence[WindowResult]) -> dict[str, float]:
     (:func:`prml2_edge.ekf.numpy_ekf.coverage_pct`); the start row of each window (error 0) is left out."""
     m2 = [r.mahal2[1:] for r in results if r.mahal2 is not None]
     return coverage_pct(np.concatenate(m2)) if m2 else {}
+
+
+def drift_curves(results: Sequence[WindowResult]) -> dict[str, np.ndarray]:
+    """Mean and std over windows of the position error [m] and absolute heading error [deg] per step (Fig. 4)."""
+    n = min(len(r.pos_error_m) for r in results)
+    pos = np.stack([r.pos_error_m[:n] for r in results])
+    yaw = np.degrees(np.abs(np.stack([r.yaw_error_rad[:n] for r in results])))
+    return {"t_s": np.arange(n) * schema.DT_S, "pos_mean_m": pos.mean(0), "pos_std_m": pos.std(0),
+            "yaw_mean_deg": yaw.mean(0), "yaw_std_deg": yaw.std(0)}
+
+
+def z_errors(results: Sequence[WindowResult], tasks: Sequence[WindowTask]) -> np.ndarray:
+    """(M, 5) z errors [SI] over all consumed samples (NaN where the model has no estimate)."""
+    gt = {t.key: t.z_gt for t in tasks}
+    err = np.concatenate([r.z - gt[r.task_key] for r in results], axis=0)
+    return err[np.isfinite(err).any(axis=1)]
+
+
+def paired_comparison(reference: Sequence[WindowResult], other: Sequence[WindowResult], *, n_boot: int = 2000,
+                      seed: int = 0) -> dict[str, float | int | None]:
+    """How ``reference`` compares with ``other`` on the windows both ran (paired by window).
+
+    With a few dozen 60 s windows the spread over windows (± several metres) is as large as the gaps
+    between good models, so a difference of means alone does not say which model is better. Returns
+    the mean of ``rmse(other) - rmse(reference)`` per window [m] with a percentile-bootstrap 95 %
+    interval (``n_boot`` resamples of the windows, fixed ``seed``), the ratio of mean RMSEs
+    (reference / other) with its interval, and the share of windows where the reference has the lower
+    RMSE. A positive difference whose interval excludes 0: the reference is better beyond the
+    window-to-window spread.
+    """
+    ref = {r.task_key: r.rmse_m for r in reference}
+    oth = {r.task_key: r.rmse_m for r in other}
+    keys = sorted(set(ref) & set(oth))
+    if not keys:
+        return {"n_windows": 0}
+    a = np.array([ref[k] for k in keys])
+    b = np.array([oth[k] for k in keys])
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, len(keys), size=(n_boot, len(keys)))
+    diff_boot = (b[idx] - a[idx]).mean(axis=1)
+    ratio_boot = a[idx].mean(axis=1) / np.maximum(b[idx].mean(axis=1), 1e-12)
+    lo, hi = np.percentile(diff_boot, [2.5, 97.5])
+    rlo, rhi = np.percentile(ratio_boot, [2.5, 97.5])
+    return {
+        "n_windows": len(keys),
+        "rmse_diff_mean_m": float((b - a).mean()), "rmse_diff_ci95_m": [float(lo), float(hi)],
+        "rmse_ratio": float(a.mean() / max(b.mean(), 1e-12)), "rmse_ratio_ci95": [float(rlo), float(rhi)],
+        "reference_wins": float(np.mean(a < b)),
+    }

@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 
 from prml2_edge import schema
+from prml2_edge.evaluation.osd import StandstillBias, osd_baseline_z
 from prml2_edge.runtime.status import InferenceStatus
 from prml2_edge.schema import Z
-from prml2_edge.training.osd_baseline import StandstillBias, osd_baseline_z
 
 # The OSD baseline cannot estimate v_y and a_x (paper Table 1 dashes). Its kinematic model (no side
 # slip) feeds the EKF v_y = 0 with the tuned variance; a_x is reported as 0 with this variance, i.e. no

@@ -22,9 +22,9 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import default_process_noise, mahalanobis2, wrap_angle
+from prml2_edge.evaluation.osd import StandstillBias, drive_bias
 from prml2_edge.guard import physics_guard
 from prml2_edge.schema import EkfState, Z
-from prml2_edge.training.osd_baseline import StandstillBias, drive_bias
 
 DR_WINDOW_S = 60.0  # dead-reckoning window [s]
 NO_GUARD_A_MAX_MPS2 = 1e9  # "guard off": an acceleration bound never reached (finite: inf / inf is NaN)
@@ -179,8 +179,8 @@ def simulated_fixes(task: WindowTask) -> dict[int, object]:
     noise 1.5 m per axis, heading (2 deg) only while moving; deterministic per task."""
     import zlib
 
-    from prml2_edge.runtime.decode import GnssFix
-    from prml2_edge.runtime.initial_pose import psi_rad_to_heading_deg
+    from prml2_edge.runtime.rows import GnssFix
+    from prml2_edge.schema import psi_rad_to_heading_deg
 
     if not task.preroll:
         return {}

@@ -1,6 +1,7 @@
 """TUM trajectory files (``timestamp x y z qx qy qz qw``) for the ``evo`` tools.
 
-Planar poses: z = 0, the quaternion a rotation by ``psi`` (ccw from east) about the up axis.
+Planar poses: z = 0, the quaternion a rotation by ``psi`` (ccw from east) about the up axis;
+each row is :func:`prml2_edge.tum.tum_line`, the runtime's ``TumSink`` format.
 """
 
 from __future__ import annotations
@@ -8,6 +9,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+
+from prml2_edge.tum import tum_line
 
 
 def write_tum(path: str | Path, t_s: np.ndarray, pose: np.ndarray) -> Path:
@@ -20,12 +23,11 @@ def write_tum(path: str | Path, t_s: np.ndarray, pose: np.ndarray) -> Path:
     if pose.ndim != 2 or pose.shape[1] != 3 or len(t_s) != len(pose):
         raise ValueError(f"want t_s (N,) and pose (N, 3), got {t_s.shape} and {pose.shape}")
     ok = np.isfinite(pose).all(axis=1) & np.isfinite(t_s)
-    half = 0.5 * pose[ok, 2]
-    zeros = np.zeros(int(ok.sum()))
-    table = np.column_stack([t_s[ok], pose[ok, 0], pose[ok, 1], zeros, zeros, zeros, np.sin(half), np.cos(half)])
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savetxt(path, table, fmt=["%.3f", "%.4f", "%.4f", "%.1f", "%.1f", "%.1f", "%.8f", "%.8f"])
+    with open(path, "w", encoding="utf-8") as f:
+        for t, (x, y, psi) in zip(t_s[ok].tolist(), pose[ok].tolist(), strict=True):
+            f.write(tum_line(t, x, y, psi))
     return path
 
 

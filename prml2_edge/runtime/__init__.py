@@ -6,7 +6,8 @@ Stages, each a small class with one ``step()`` (``pipeline.py`` wires them):
 and range checks) -> ``assembler`` (50 Hz grid, zero-order hold, per-signal age/validity)
 -> ``localizer`` (``window`` -> ``inference`` ONNX Runtime -> physics guard -> NumPy EKF,
 GNSS fusion) -> ``sinks`` (JSON lines, CSV, TUM, CAN). ``latency`` times every stage;
-``stats`` accounts for every frame.
+``stats`` accounts for every frame; ``providers`` picks the ONNX Runtime execution providers.
 
-Nothing here imports torch (``tests/test_runtime_no_torch.py`` checks it).
+Nothing here imports torch (``tests/runtime/test_runtime_no_torch.py`` checks it), nor the packages
+around the runtime (``cli``, ``service``, ``training``, ``evaluation``).
 """

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from prml2_edge import schema
-from prml2_edge.runtime.decode import DecodedFrame, GnssFix
+from prml2_edge.runtime.rows import AssembledRow, DecodedFrame, GnssFix
 from prml2_edge.runtime.stats import FrameStats
 from prml2_edge.runtime.status import FrameStatus
 
@@ -66,33 +66,10 @@ class StuckCheck:
 # 2 m/s^2 at >= 5 m/s: each implies a yaw-rate change of several 1.28 deg/s sensor steps.
 # Simulated drives (seed 3, 5, 11; up to 50 s without a yaw-rate step) stay below 0.16 rad and
 # 0.45 m/s^2 while the yaw rate holds, so a healthy sensor does not trip it.
-YAW_RATE_STUCK = StuckCheck(index=2, hold_s=1.0, witness=(1, 3), span=(0.35, 2.0))
-
-
-@dataclass
-class AssembledRow:
-    """One 50 Hz row of o_t.
-
-    ``values`` (9,) SI, canonical order (never-received signals hold 0.0 and are invalid);
-    ``valid`` (9,) bool; ``age_s`` (9,) seconds since the held value's frame (inf if never);
-    ``gnss`` the newest GNSS fix that arrived within this row's interval;
-    ``trigger_ns`` ``time.perf_counter_ns()`` when the frame that closed this row was received
-    (0 when the row was flushed at the end), the start of the end-to-end latency.
-    """
-
-    k: int
-    t_s: float
-    values: np.ndarray
-    valid: np.ndarray
-    age_s: np.ndarray
-    gnss: GnssFix | None = None
-    discontinuity: bool = False
-    trigger_ns: int = 0
-    bus_silent: bool = False  # no frame at all for more than bus_silent_s before this row
-
-    @property
-    def all_valid(self) -> bool:
-        return bool(self.valid.all())
+_SIG = {name: s.index for name, s in schema.SIGNAL_BY_NAME.items()}
+_SPEEDOMETER = _SIG["speedometer_mps"]
+YAW_RATE_STUCK = StuckCheck(index=_SIG["yaw_rate_radps"], hold_s=1.0,
+                            witness=(_SIG["steering_wheel_angle_rad"], _SIG["lat_accel_mps2"]), span=(0.35, 2.0))
 
 
 class Assembler:
@@ -150,7 +127,6 @@ class Assembler:
         self._pending_gnss: GnssFix | None = None
         self._discontinuity = False
         self.resyncs = 0
-        self.rows_emitted = 0
 
     @classmethod
     def for_map(cls, signal_map, **kwargs) -> Assembler:
@@ -179,7 +155,6 @@ class Assembler:
         self._pending_gnss = None
         self._discontinuity = False
         self._k_next += 1
-        self.rows_emitted += 1
         return row
 
     def step(self, frame: DecodedFrame, recv_ns: int = 0) -> tuple[FrameStatus, list[AssembledRow]]:
@@ -277,7 +252,7 @@ class Assembler:
         for c in self.stuck_checks:
             if self._frozen[c.index]:
                 continue
-            moving = self.values[0] >= c.min_speed_mps and np.isfinite(self.last_t_s[0])
+            moving = self.values[_SPEEDOMETER] >= c.min_speed_mps and np.isfinite(self.last_t_s[_SPEEDOMETER])
             spans = self._stuck_hi[c.index] - self._stuck_lo[c.index]
             if moving and t_k - self._stuck_since[c.index] >= c.hold_s - self.eps_s and \
                     bool(np.any(spans >= np.asarray(c.span))):

@@ -13,7 +13,8 @@ raises on the hot path.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import can
 import cantools
@@ -21,57 +22,16 @@ import cantools
 from prml2_edge import schema
 from prml2_edge.can.checksum import checksum_function
 from prml2_edge.can.signal_map import SignalMap
+from prml2_edge.runtime.rows import DecodedFrame, GnssFix
 from prml2_edge.runtime.stats import FrameStats
 from prml2_edge.runtime.status import FrameStatus
-
-
-@dataclass(frozen=True)
-class GnssFix:
-    """A GNSS fix from the bus: position in the local frame, heading as GNSS receivers give it.
-
-    ``x_m`` east [m], ``y_m`` north [m], ``heading_deg`` true heading clockwise from north
-    [deg] (None when the map has no heading signal). ``t_s`` is the frame's timestamp [s].
-    """
-
-    t_s: float
-    x_m: float
-    y_m: float
-    heading_deg: float | None
-    valid: bool
-
-    @property
-    def psi_rad(self) -> float | None:
-        """Heading counter-clockwise from east [rad] (the EKF's convention), wrapped to (-pi, pi]."""
-        if self.heading_deg is None:
-            return None
-        psi = math.pi / 2.0 - math.radians(self.heading_deg)
-        return math.atan2(math.sin(psi), math.cos(psi))
-
-
-@dataclass
-class DecodedFrame:
-    """What one frame contributed: values of canonical signals and their quality flags.
-
-    ``index[i]`` is the canonical signal index (``schema.SIGNALS``) of ``value_si[i]``;
-    ``ok[i]`` is False when the value's quality bit says invalid (the value is then not held,
-    but the signal is marked invalid at once).
-    """
-
-    status: FrameStatus
-    t_s: float
-    message: str | None = None
-    index: list[int] = field(default_factory=list)
-    value_si: list[float] = field(default_factory=list)
-    ok: list[bool] = field(default_factory=list)
-    gnss: GnssFix | None = None
 
 
 @dataclass
 class _SignalPlan:
     index: int  # canonical index
     signal: str
-    scale: float
-    offset: float
+    to_si: Callable[[float, int], float]  # SignalSpec.to_si, bound once
     sign: str | None
     valid: str | None
     valid_value: int
@@ -120,7 +80,7 @@ class FrameDecoder:
         for spec in signal_map.signals:
             plan = self._plan(signal_map, db, spec.message)
             sig = schema.SIGNAL_BY_NAME[spec.name]
-            plan.signals.append(_SignalPlan(sig.index, spec.signal, spec.scale, spec.offset, spec.sign, spec.valid,
+            plan.signals.append(_SignalPlan(sig.index, spec.signal, spec.to_si, spec.sign, spec.valid,
                                             spec.valid_value, sig.min, sig.max))
         if signal_map.gnss is not None:
             self._plan(signal_map, db, signal_map.gnss.message).gnss = signal_map.gnss
@@ -145,11 +105,6 @@ class FrameDecoder:
     def frame_ids(self) -> list[int]:
         """Arbitration IDs this decoder uses (for a bus-level receive filter)."""
         return sorted(self.plans)
-
-    def reset_counters(self) -> None:
-        """Forget the last alive counter of every message (after a bus restart)."""
-        for plan in self.plans.values():
-            plan.last_counter = None
 
     def step(self, msg: can.Message) -> DecodedFrame:
         """Decode one frame; never raises. ``msg.timestamp`` [s] becomes ``t_s``."""
@@ -189,9 +144,7 @@ class FrameDecoder:
         out = DecodedFrame(FrameStatus.USED, t_s, plan.name)
         n_out_of_range = n_nonfinite = n_invalid = 0
         for sp in plan.signals:
-            value = decoded[sp.signal] * sp.scale + sp.offset
-            if sp.sign is not None and decoded[sp.sign]:
-                value = -value
+            value = sp.to_si(decoded[sp.signal], decoded[sp.sign] if sp.sign is not None else 0)
             ok = sp.valid is None or int(decoded[sp.valid]) == sp.valid_value
             if not math.isfinite(value):
                 self.stats.signal_nonfinite[sp.index] += 1

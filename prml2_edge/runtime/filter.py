@@ -30,9 +30,9 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import CalibrationNoise, CalibrationStd, Ekf, StepStatus, wrap_angle
-from prml2_edge.runtime.decode import GnssFix
 from prml2_edge.runtime.estimator import Estimate
 from prml2_edge.runtime.initial_pose import InitialPose, initial_state
+from prml2_edge.runtime.rows import GnssFix
 from prml2_edge.schema import EkfState
 
 _SIG = schema.SIGNAL_BY_NAME

@@ -4,7 +4,7 @@ The session is configured for a small, predictable edge footprint: ``intra_op_nu
 from the config (default 1), one inter-op thread, thread spinning off unless asked for (an idle
 spinning thread would steal the CPU the CAN loop needs; with 2+ threads spinning tightens the
 tail latency of a large model), all graph optimisations. Providers come
-from :func:`prml2_edge.service.providers.select_providers` (TensorRT -> CUDA -> CPU,
+from :func:`prml2_edge.runtime.providers.select_providers` (TensorRT -> CUDA -> CPU,
 whichever this onnxruntime offers).
 
 Graph contract (:mod:`prml2_edge.model_meta`): input ``onboard`` float32 (1, L, 9) raw SI;
@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from prml2_edge import schema
-from prml2_edge.errors import ModelError
+from prml2_edge.errors import ModelError, first_line
 from prml2_edge.model_meta import METADATA_KEY, ModelMetadata
 from prml2_edge.resources import resource_path
 from prml2_edge.runtime.status import InferenceStatus
@@ -88,7 +88,7 @@ class OnnxModel:
                  trt_cache_dir: str = "~/.cache/prml2/trt", trt_fp16: bool = False, spinning: bool = False) -> None:
         import onnxruntime as ort
 
-        from prml2_edge.service.providers import select_providers
+        from prml2_edge.runtime.providers import select_providers
 
         self.path = Path(path)
         if not self.path.is_file():
@@ -102,7 +102,7 @@ class OnnxModel:
         try:
             self.session = ort.InferenceSession(str(self.path), sess_options=opts, providers=choice.providers)
         except Exception as exc:
-            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            first = first_line(exc)
             raise ModelError(f"{self.path}: onnxruntime cannot load the model ({first[:200]})") from exc
         self.providers = self.session.get_providers()
         props = self.session.get_modelmeta().custom_metadata_map
@@ -144,7 +144,7 @@ class OnnxModel:
             try:
                 self.session.run(self.output_names, {self.input_name: window})
             except Exception as exc:
-                first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
+                first = first_line(exc, 200)
                 raise ModelError(f"{self.path}: warm-up inference failed ({first})") from exc
             times.append((time.perf_counter() - t0) * 1e3)
         return times
@@ -187,7 +187,7 @@ class OnnxModel:
             mean, var = self.session.run(self.output_names, {self.input_name: window})
         except Exception as exc:  # onnxruntime wraps every failure in its own types
             self.n_errors += 1
-            self.last_error = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
+            self.last_error = first_line(exc, 200)
             return InferenceStatus.ERROR
         want = (1, self.output_rows, schema.NUM_STATES)
         if mean.shape != want or var.shape != want:

@@ -2,7 +2,8 @@
 
 Headings given by people and GNSS receivers are *true heading, clockwise from north, in
 degrees* (as in ``deploy/runtime.toml`` and the project DBC's ``GNSS_HEADING``); the EKF
-uses ``psi`` counter-clockwise from east in radians: ``psi = pi/2 - radians(heading_deg)``.
+uses ``psi`` counter-clockwise from east in radians: ``psi = pi/2 - radians(heading_deg)``
+(:func:`prml2_edge.schema.heading_deg_to_psi_rad`).
 """
 
 from __future__ import annotations
@@ -17,22 +18,11 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import default_initial_covariance
-from prml2_edge.errors import ConfigError
-from prml2_edge.runtime.decode import GnssFix
-from prml2_edge.schema import EkfState
+from prml2_edge.errors import ConfigError, first_line, reject_unknown_keys
+from prml2_edge.runtime.rows import GnssFix
+from prml2_edge.schema import EkfState, heading_deg_to_psi_rad
 
 _FILE_KEYS = {"x_m", "y_m", "heading_deg", "pos_std_m", "heading_std_deg"}
-
-
-def heading_deg_to_psi_rad(heading_deg: float) -> float:
-    """True heading clockwise from north [deg] -> psi counter-clockwise from east [rad], wrapped to (-pi, pi]."""
-    psi = math.pi / 2.0 - math.radians(heading_deg)
-    return math.atan2(math.sin(psi), math.cos(psi))
-
-
-def psi_rad_to_heading_deg(psi_rad: float) -> float:
-    """psi counter-clockwise from east [rad] -> true heading clockwise from north [deg] in [0, 360)."""
-    return (90.0 - math.degrees(psi_rad)) % 360.0
 
 
 @dataclass(frozen=True)
@@ -84,12 +74,10 @@ class InitialPose:
         try:
             data = tomllib.loads(raw.decode()) if path.suffix == ".toml" else json.loads(raw)
         except (ValueError, UnicodeDecodeError) as exc:
-            raise ConfigError(f"{path}: initial pose file does not parse ({str(exc).splitlines()[0]})") from None
+            raise ConfigError(f"{path}: initial pose file does not parse ({first_line(exc)})") from None
         if not isinstance(data, dict):
             raise ConfigError(f"{path}: initial pose file must hold an object with x_m, y_m, heading_deg")
-        unknown = sorted(set(data) - _FILE_KEYS)
-        if unknown:
-            raise ConfigError(f"{path}: unknown key {unknown[0]!r} (known: {', '.join(sorted(_FILE_KEYS))})")
+        reject_unknown_keys(data, _FILE_KEYS, "{path}: unknown key {key} (known: {known})", path=path)
         missing = [k for k in ("x_m", "y_m", "heading_deg") if k not in data]
         if missing:
             raise ConfigError(f"{path}: initial pose file lacks {', '.join(missing)}")

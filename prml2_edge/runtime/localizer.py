@@ -21,11 +21,11 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import StepStatus, default_process_noise, wrap_angle
-from prml2_edge.runtime.decode import GnssFix
 from prml2_edge.runtime.estimator import Estimate, Estimator, Model
 from prml2_edge.runtime.filter import PoseFilter
 from prml2_edge.runtime.initial_pose import InitialPose
 from prml2_edge.runtime.latency import LatencyRecorder
+from prml2_edge.runtime.rows import GnssFix
 from prml2_edge.runtime.status import PoseStatus
 from prml2_edge.schema import CalState, EkfState
 

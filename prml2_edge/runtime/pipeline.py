@@ -22,37 +22,20 @@ import can
 import numpy as np
 
 from prml2_edge import schema
-from prml2_edge.can.signal_map import SignalMap, load_map_and_dbc, shipped_map_path
+from prml2_edge.can.signal_map import SignalMap, load_map_and_dbc, resolve_map
 from prml2_edge.errors import ConfigError
-from prml2_edge.runtime.assembler import AssembledRow, Assembler
+from prml2_edge.runtime.assembler import Assembler
 from prml2_edge.runtime.decode import FrameDecoder
 from prml2_edge.runtime.inference import OnnxModel, default_model_path
 from prml2_edge.runtime.initial_pose import InitialPose
 from prml2_edge.runtime.latency import LatencyRecorder
 from prml2_edge.runtime.localizer import LocalizerConfig, StepOutput, StreamingLocalizer
+from prml2_edge.runtime.rows import AssembledRow
 from prml2_edge.runtime.stats import FrameStats
 from prml2_edge.runtime.status import PoseStatus
 from prml2_edge.schema import CalState, EkfState
 
 log = logging.getLogger(__name__)
-
-SHIPPED_MAPS = ("prml2_onboard", "vw_mqb", "hyundai_2015_ccan")
-
-
-def resolve_map(name_or_path: str | Path) -> Path:
-    """A shipped map name (``prml2_onboard``, ``vw_mqb``, ``hyundai_2015_ccan``) or a path to a map TOML."""
-    text = str(name_or_path)
-    if text.endswith(".toml") or "/" in text or "\\" in text:
-        path = Path(text)
-        if not path.is_file():
-            raise ConfigError(f"{path}: signal map not found")
-        return path
-    try:
-        return shipped_map_path(text)
-    except Exception:
-        raise ConfigError(f"unknown signal map {text!r}; shipped maps: {', '.join(SHIPPED_MAPS)} "
-                          "(or give a path to a map .toml)") from None
-
 
 _NAN_COV = np.full((2, 2), np.nan)
 _NAN_CAL = np.full(CalState.DIM, np.nan)
@@ -253,7 +236,8 @@ class Pipeline:
             if out.status is PoseStatus.INITIALISING:
                 parts.append("INITIALISING (waiting for a GNSS fix)")
             else:
-                parts.append(f"pose ({out.x[0]:.1f}, {out.x[1]:.1f}) m +-{out.pos_std_m:.1f} {out.status.name}"
+                p_x, p_y = out.x[EkfState.POS]
+                parts.append(f"pose ({p_x:.1f}, {p_y:.1f}) m +-{out.pos_std_m:.1f} {out.status.name}"
                              + (f" outage {out.outage_s:.0f} s" if out.gnss_outage else ""))
         return " | ".join(parts)
 
@@ -267,8 +251,10 @@ class Pipeline:
         last = None
         if self.last is not None:
             out = self.last
-            last = {"t_s": out.t_s, "x_m": out.x[0], "y_m": out.x[1], "psi_rad": out.x[2], "v_x_mps": out.x[4],
-                    "pos_std_m": out.pos_std_m, "status": out.status.name, "outage_s": out.outage_s}
+            p_x, p_y = out.x[EkfState.POS]
+            last = {"t_s": out.t_s, "x_m": p_x, "y_m": p_y, "psi_rad": out.x[EkfState.YAW.start],
+                    "v_x_mps": out.x[EkfState.VEL.start], "pos_std_m": out.pos_std_m, "status": out.status.name,
+                    "outage_s": out.outage_s}
             last = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in last.items()}
         sinks = {type(s).__name__: {k: getattr(s, k) for k in ("rows", "frames", "errors", "last_error")
                                     if hasattr(s, k)} for s in self.sinks}

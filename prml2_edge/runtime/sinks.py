@@ -29,6 +29,7 @@ from prml2_edge.resources import project_dbc_path
 from prml2_edge.runtime.localizer import StepOutput
 from prml2_edge.runtime.status import PoseStatus
 from prml2_edge.schema import EkfState
+from prml2_edge.tum import tum_line
 
 
 class _FileSink:
@@ -95,10 +96,9 @@ class TumSink(_FileSink):
     def step(self, out: StepOutput) -> None:
         if out.status is PoseStatus.INITIALISING:
             return
-        x, y, psi = out.x[0], out.x[1], out.x[2]
+        (x, y), psi = out.x[EkfState.POS], out.x[EkfState.YAW.start]
         try:
-            self._f.write(f"{out.t_s:.6f} {x:.4f} {y:.4f} 0.0 0.0 0.0 {math.sin(psi / 2):.8f} "
-                          f"{math.cos(psi / 2):.8f}\n")
+            self._f.write(tum_line(out.t_s, x, y, psi))
             self.rows += 1
         except (OSError, ValueError) as exc:
             self._failed(exc)
@@ -143,12 +143,13 @@ class CanSink:
             return
         x = out.x
         heading_deg = math.degrees(x[EkfState.YAW.start]) % 360.0  # counter-clockwise from east
+        (p_x, p_y), (v_x, v_y), (a_x, a_y) = x[EkfState.POS], x[EkfState.VEL], x[EkfState.ACC]
         try:
             payloads = (
-                (self._pose, {"POSE_X": x[0], "POSE_Y": x[1], "POSE_HEADING": heading_deg,
+                (self._pose, {"POSE_X": p_x, "POSE_Y": p_y, "POSE_HEADING": heading_deg,
                               "POSE_STATUS": int(out.status)}),
-                (self._dyn, {"DYN_V_X": x[4], "DYN_V_Y": x[5], "DYN_A_X": x[6], "DYN_A_Y": x[7],
-                             "DYN_YAW_RATE": x[3]}),
+                (self._dyn, {"DYN_V_X": v_x, "DYN_V_Y": v_y, "DYN_A_X": a_x, "DYN_A_Y": a_y,
+                             "DYN_YAW_RATE": x[EkfState.OMEGA_Z.start]}),
                 (self._std, {"POSE_STD_POS": out.pos_std_m, "POSE_STD_HEADING": math.degrees(out.yaw_std_rad),
                              "OUTAGE_TIME": out.outage_s if math.isfinite(out.outage_s) else 0.0,
                              "COUNTER": self.counter}),

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import can
 
-from prml2_edge.errors import ConfigError, DataError
+from prml2_edge.errors import ConfigError, DataError, first_line
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +38,7 @@ def open_bus(interface: str, channel: str, bitrate: int | None = None, fd: bool 
     try:
         return can.Bus(interface=interface, channel=channel, receive_own_messages=False, **options)
     except Exception as exc:  # backends raise CanError, OSError, ImportError, ValueError, ...
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        first = first_line(exc)
         hint = " (is the link up? see deploy/can-setup.sh)" if interface == "socketcan" else ""
         raise ConfigError(f"cannot open CAN interface {interface!r} channel {channel!r}: {first}{hint}") from exc
 
@@ -57,7 +57,7 @@ class BusSource:
             msg = self.bus.recv(timeout=timeout_s)
         except Exception as exc:  # a bus error must not end the loop: count it, back off briefly
             self.errors += 1
-            self.last_error = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            self.last_error = first_line(exc)
             time.sleep(min(timeout_s, 0.05))
             return None
         if msg is not None:
@@ -79,11 +79,6 @@ def check_log(path: str | Path) -> Path:
     if not suffixes or suffixes[-1] not in LOG_SUFFIXES:
         raise DataError(f"{path}: unknown CAN log format; python-can reads {', '.join(LOG_SUFFIXES)} (optionally .gz)")
     return path
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return text.splitlines()[0][:200] if text else type(exc).__name__
 
 
 def truncation_problem(path: str | Path) -> str | None:
@@ -116,7 +111,7 @@ def truncation_problem(path: str | Path) -> str | None:
             if suffix == ".asc" and b"End TriggerBlock" not in tail:
                 return "no 'End TriggerBlock' at the end: truncated"
     except Exception as exc:  # the reader will report a header it cannot read
-        return f"cannot check the end of the file ({_first_line(exc)})"
+        return f"cannot check the end of the file ({first_line(exc, 200)})"
     return None
 
 
@@ -138,7 +133,7 @@ def scan_log(path: str | Path) -> tuple[int, float, float, str | None]:
                 last = msg.timestamp
                 n += 1
     except Exception as exc:
-        problem = f"{path}: cannot read CAN log after {n} frames ({_first_line(exc)})"
+        problem = f"{path}: cannot read CAN log after {n} frames ({first_line(exc, 200)})"
     if problem is None:
         cut = truncation_problem(path)
         if cut is not None:
@@ -226,7 +221,7 @@ class LogReplay:
                     self._tx.send(msg)  # type: ignore[union-attr]
                     self.sent += 1
         except Exception as exc:  # a malformed log: deliver what came before, report it at the end
-            self.error = f"{self.path}: cannot read CAN log after {self.sent} frames ({_first_line(exc)})"
+            self.error = f"{self.path}: cannot read CAN log after {self.sent} frames ({first_line(exc, 200)})"
         finally:
             self._done.set()
 

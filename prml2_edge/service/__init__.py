@@ -1,1 +1,1 @@
-"""Running the edge runtime as a service: systemd notify/watchdog, execution-provider choice."""
+"""Running the edge runtime as a service: systemd notify/watchdog, ``prml2 doctor`` checks."""

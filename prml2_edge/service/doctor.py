@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from prml2_edge.config import RuntimeConfig, verify_pinned_model
-from prml2_edge.errors import Prml2Error
+from prml2_edge.errors import Prml2Error, first_line
 
 PASS, WARN, FAIL = "PASS", "WARN", "FAIL"
 ARPHRD_CAN = 280  # /sys/class/net/<if>/type of a CAN interface
@@ -26,11 +26,6 @@ class Check:
     result: str  # PASS | WARN | FAIL
     detail: str
     hint: str = ""
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return text.splitlines()[0][:200] if text else type(exc).__name__
 
 
 def can_links(sys_class_net: Path = Path("/sys/class/net")) -> dict[str, str]:
@@ -68,7 +63,7 @@ def check_can_link(cfg: RuntimeConfig, sys_class_net: Path = Path("/sys/class/ne
             bus.shutdown()
             return Check("CAN link", PASS, f"{interface} channel {channel} opens")
         except Exception as exc:
-            return Check("CAN link", FAIL, f"{interface} channel {channel}: {_first_line(exc)}",
+            return Check("CAN link", FAIL, f"{interface} channel {channel}: {first_line(exc, 200)}",
                          f"check the adapter and its driver for python-can's {interface!r} interface")
     links = can_links(sys_class_net)
     if channel not in links:
@@ -84,7 +79,7 @@ def check_can_link(cfg: RuntimeConfig, sys_class_net: Path = Path("/sys/class/ne
 def check_providers(cfg: RuntimeConfig) -> Check:
     import onnxruntime as ort
 
-    from prml2_edge.service.providers import select_providers
+    from prml2_edge.runtime.providers import select_providers
 
     try:
         choice = select_providers(cfg.model.providers, trt_cache_dir=cfg.model.trt_cache_dir,
@@ -99,13 +94,12 @@ def check_providers(cfg: RuntimeConfig) -> Check:
 
 
 def check_map_and_dbc(cfg: RuntimeConfig) -> Check:
-    from prml2_edge.can.signal_map import load_map_and_dbc
-    from prml2_edge.runtime.pipeline import resolve_map
+    from prml2_edge.can.signal_map import load_map_and_dbc, resolve_map
 
     try:
         smap, db, dbc_path = load_map_and_dbc(resolve_map(cfg.signals.map), cfg.signals.dbc)
     except Prml2Error as exc:
-        return Check("DBC and signal map", FAIL, _first_line(exc), "fix [signals] map/dbc (see dbc/maps/*.toml)")
+        return Check("DBC and signal map", FAIL, first_line(exc, 200), "fix [signals] map/dbc (see dbc/maps/*.toml)")
     return Check("DBC and signal map", PASS, f"map {smap.name} on {dbc_path.name}: 9 signals in "
                  f"{len(smap.message_names)} messages, GNSS {'yes' if smap.gnss else 'no'}")
 
@@ -120,7 +114,8 @@ def check_model(cfg: RuntimeConfig, runs: int = 50) -> list[Check]:
         model = OnnxModel(path, threads=cfg.model.threads, providers=cfg.model.providers,
                           trt_cache_dir=cfg.model.trt_cache_dir, trt_fp16=cfg.model.trt_fp16)
     except (Prml2Error, OSError) as exc:
-        return [Check("model", FAIL, _first_line(exc), "export a model with 'prml2 export' or fix [model] path/sha256")]
+        return [Check("model", FAIL, first_line(exc, 200),
+                      "export a model with 'prml2 export' or fix [model] path/sha256")]
     pin = "pinned" if cfg.model.sha256 else "not pinned"
     checks = [Check("model", PASS, f"{path.name}: preset {model.metadata.preset}, schema "
                     f"{model.metadata.schema_hash}, sha256 {digest[:12]}... ({pin})")]

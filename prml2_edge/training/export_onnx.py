@@ -244,15 +244,14 @@ def parity(model: Prml2Model, onnx_path: str | Path, windows: np.ndarray) -> dic
 def quantize_int8(fp32_path: str | Path, int8_path: str | Path) -> Path:
     """Dynamic int8 quantisation (onnxruntime ``quantize_dynamic``) of the transformer's MatMul weights.
 
-    The layers in :data:`prml2_edge.bench.quantize.PRML2_KEEP_FP32` (input projection, head, skip: the
+    The layers in :data:`prml2_edge.training.quantize.PRML2_KEEP_FP32` (input projection, head, skip: the
     output head and the skip carry the fine resolution of the outputs, int8 weights there cost ~2.5x the
     yaw-rate RMSE) stay float32; the metadata is carried over with ``training["int8"] = True``
-    (:func:`prml2_edge.bench.quantize.quantize_int8` does the work).
+    (:func:`prml2_edge.training.quantize.quantize_int8` does the work).
     """
-    from prml2_edge.bench.quantize import PRML2_KEEP_FP32
-    from prml2_edge.bench.quantize import quantize_int8 as quantize
+    from prml2_edge.training import quantize
 
-    return quantize(fp32_path, int8_path, keep_fp32=PRML2_KEEP_FP32)
+    return quantize.quantize_int8(fp32_path, int8_path, keep_fp32=quantize.PRML2_KEEP_FP32)
 
 
 def compare_int8(fp32_path: str | Path, int8_path: str | Path, windows: np.ndarray, z_gt: np.ndarray) -> dict:

@@ -22,21 +22,17 @@ def plot_history(history: list[dict], path: str | Path) -> Path:
     def series(key: str) -> list[float]:
         return [h.get(key, math.nan) for h in history]
 
+    def train_val(ax, key: str, labels: tuple[str, str], ylabel: str, title: str) -> None:
+        ax.plot(epochs, series(f"train_{key}"), "o-", label=labels[0])
+        ax.plot(epochs, series(f"val_{key}"), "s-", label=labels[1])
+        ax.set_xlabel("epoch")
+        ax.set_ylabel(ylabel)
+        ax.set_title(title)
+        ax.legend()
+
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
-    ax = axes[0]
-    ax.plot(epochs, series("train_nll"), "o-", label="train NLL")
-    ax.plot(epochs, series("val_nll"), "s-", label="val NLL")
-    ax.set_xlabel("epoch")
-    ax.set_ylabel("NLL per window")
-    ax.set_title("NLL (Eq. nll_loss)")
-    ax.legend()
-    ax = axes[1]
-    ax.plot(epochs, series("train_pos"), "o-", label="train")
-    ax.plot(epochs, series("val_pos"), "s-", label="val")
-    ax.set_xlabel("epoch")
-    ax.set_ylabel("beta tanh(sum |d - d_gt|^2 / beta)")
-    ax.set_title("position term (fine-tuning)")
-    ax.legend()
+    train_val(axes[0], "nll", ("train NLL", "val NLL"), "NLL per window", "NLL (Eq. nll_loss)")
+    train_val(axes[1], "pos", ("train", "val"), "beta tanh(sum |d - d_gt|^2 / beta)", "position term (fine-tuning)")
     ax = axes[2]
     for key, label in (("val_rmse_v_x_mps", "v_x [m/s]"), ("val_rmse_v_y_mps", "v_y [m/s]"),
                        ("val_rmse_a_x_mps2", "a_x [m/s²]"), ("val_rmse_a_y_mps2", "a_y [m/s²]"),

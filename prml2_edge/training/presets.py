@@ -17,7 +17,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields, replace
 
 from prml2_edge import schema
-from prml2_edge.errors import ConfigError
+from prml2_edge.errors import ConfigError, reject_unknown_keys
 
 
 @dataclass(frozen=True)
@@ -191,10 +191,7 @@ def get_preset(name: str) -> Preset:
 
 
 def _from_dict(cls: type, data: dict, what: str):
-    known = {f.name for f in fields(cls)}
-    unknown = sorted(set(data) - known)
-    if unknown:
-        raise ConfigError(f"unknown {what} key {unknown[0]!r}; known keys: {', '.join(sorted(known))}")
+    reject_unknown_keys(data, (f.name for f in fields(cls)), "unknown {what} key {key}; known keys: {known}", what=what)
     return cls(**data)
 
 
@@ -214,11 +211,8 @@ def train_config_from_dict(data: dict) -> TrainConfig:
 
 def with_overrides(cfg, overrides: dict):
     """``cfg`` with the non-``None`` entries of ``overrides`` replaced (unknown keys rejected)."""
-    known = {f.name for f in fields(cfg)}
     clean = {k: v for k, v in overrides.items() if v is not None}
-    unknown = sorted(set(clean) - known)
-    if unknown:
-        raise ConfigError(f"unknown override {unknown[0]!r}; known keys: {', '.join(sorted(known))}")
+    reject_unknown_keys(clean, (f.name for f in fields(cfg)), "unknown override {key}; known keys: {known}")
     return replace(cfg, **clean)
 
 

@@ -227,6 +227,26 @@ def _write_jsonl(path: Path, record: dict) -> None:
         fh.write(json.dumps(record, sort_keys=True) + "\n")
 
 
+@dataclass
+class _Loop:
+    """What every epoch and step of :func:`fit` shares (one run, this rank)."""
+
+    model: Prml2Model
+    train_model: torch.nn.Module  # ``model``, or its DDP wrapper
+    guard: PhysicsGuard
+    optimizer: torch.optim.Optimizer
+    params: list[torch.nn.Parameter]
+    filt: _Filter | None
+    cfg: TrainConfig
+    info: ddp.DistInfo
+    counters: dict[str, float]
+    H: int  # encoder length
+    seq_len: int  # fine-tuning segment length [steps] (0: window fine-tuning)
+    seq_rows: int  # newest rows of each window that tile a segment
+    steps_per_epoch: int
+    per_rank_batch: int
+
+
 def fit(
     data: TrainData,
     out_dir: str | Path,
@@ -266,196 +286,268 @@ def fit(
     out_dir = Path(out_dir)
     metrics_path = out_dir / "metrics.jsonl"
     best_path, last_path = out_dir / "best.pt", out_dir / "last.pt"
-    if len(data.train) == 0:
-        raise ConfigError("no training windows: the training split is shorter than one window (L samples)")
-    if len(data.val) == 0:
-        raise ConfigError("no validation windows: the validation split is shorter than one window (L samples)")
+    _check_data(data)
 
     torch.manual_seed(train_cfg.seed)
     model = Prml2Model(model_cfg, data.norm_mean, data.norm_std, data.z_mean, data.z_std)
     if data.skip_rows is not None:
         model.init_skip(*data.skip_rows)
-    guard = PhysicsGuard(mu=train_cfg.mu)
     optimizer = torch.optim.Adam(model.parameters(), lr=train_cfg.lr, weight_decay=train_cfg.weight_decay)
     counters: dict[str, float] = {"steps": 0, "skipped_nonfinite": 0, "skipped_exploding": 0,
                                   "grad_log_ema": math.nan}
-    start_epoch = 0
-    best_score = math.inf
-    history: list[dict] = []
-
+    start_epoch, best_score, history = 0, math.inf, []
     if resume is not None:
-        ckpt = read_checkpoint(resume)
-        if ckpt.get("optimizer") is None:
-            raise ModelError(f"{resume} has no optimizer state; resume from a run's last.pt")
-        if model_config_from_dict(ckpt["model_config"]) != model_cfg:
-            raise ConfigError(f"{resume} was trained with another model config; use the same --preset")
-        if train_config_from_dict(ckpt["train_config"]) != train_cfg:
-            raise ConfigError(f"{resume} was trained with other training options; repeat the original ones")
-        if ckpt["dataset_fingerprint"] != data.fingerprint:
-            raise ConfigError(f"{resume} was trained on another dataset (fingerprint {ckpt['dataset_fingerprint']})")
-        model.load_state_dict(ckpt["model"])
-        optimizer.load_state_dict(ckpt["optimizer"])
-        start_epoch = int(ckpt["epoch"])
-        best_score = math.inf if ckpt.get("best_score") is None else float(ckpt["best_score"])
-        counters.update(ckpt.get("counters", {}))
-        if metrics_path.is_file():
-            history = [json.loads(line) for line in metrics_path.read_text().splitlines() if line.strip()]
-            history = [h for h in history if h.get("epoch", 0) <= start_epoch]
-
-    train_model: torch.nn.Module = model
-    if info.enabled:
-        train_model = torch.nn.parallel.DistributedDataParallel(model)
-
+        start_epoch, best_score, history = _resume(resume, model, optimizer, counters, model_cfg, train_cfg, data,
+                                                   metrics_path)
     if info.is_main:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        if resume is None:
-            metrics_path.write_text("")
-            best_path.unlink(missing_ok=True)
-        else:  # drop records of epochs after the checkpoint
-            metrics_path.write_text("".join(json.dumps(h, sort_keys=True) + "\n" for h in history))
+        _start_metrics(out_dir, metrics_path, best_path, history if resume is not None else None)
+    loop = _make_loop(model, optimizer, counters, model_cfg, train_cfg, info, len(data.train))
 
-    filt = _Filter() if train_cfg.finetune else None
-    seq_len, seq_rows = train_cfg.ft_horizon_steps(), train_cfg.ft_rows
-    if train_cfg.finetune and seq_len and seq_rows > model_cfg.decoder_len:
-        raise ConfigError(f"ft_rows = {seq_rows} exceeds the model's {model_cfg.decoder_len} decoder steps")
-    H = model_cfg.encoder_len
-    n_train = len(data.train)
-    steps_per_epoch = _steps_per_epoch(n_train, train_cfg, info.world_size)
-    per_rank_batch = max(1, train_cfg.batch_size // info.world_size)
-    params = [p for p in model.parameters() if p.requires_grad]
-
+    lr = math.nan
     for epoch in range(start_epoch, train_cfg.epochs):
         stage = _stage_of(epoch, train_cfg)
         if epoch > 0 and stage != _stage_of(epoch - 1, train_cfg):
             best_score = math.inf  # a new stage: its own best
-        if train_cfg.lr_schedule == "cosine":  # one schedule over the whole run
-            stage_first, stage_steps = 0, train_cfg.epochs * steps_per_epoch
-        else:  # "cosine_restart": one schedule per stage
-            stage_first = 0 if stage == PRETRAIN else train_cfg.pretrain_epochs()
-            stage_epochs = train_cfg.pretrain_epochs() if stage == PRETRAIN else train_cfg.epochs - stage_first
-            stage_steps = stage_epochs * steps_per_epoch
         t_epoch = time.monotonic()
-        rng = np.random.default_rng([train_cfg.seed, epoch])
-        seq = stage == FINETUNE and seq_len > 0  # fine-tuning over segments, the EKF across windows
-        if seq:  # as many windows per epoch as the window epochs (each segment takes seq_len / seq_rows)
-            candidates = data.train.segment_starts(seq_len, train_cfg.window_stride)
-            if len(candidates) == 0:
-                raise ConfigError(f"no training segment of {train_cfg.ft_horizon_s:g} s (+ one window of history) "
-                                  "fits in a drive's training split; lower ft_horizon_s")
-            n_seg = max(1, round(_windows_per_epoch(n_train, train_cfg) * seq_rows / seq_len))
-            order = candidates[rng.permutation(len(candidates))[:n_seg]]
-            batch_size = max(1, train_cfg.ft_segments // info.world_size)
-        else:
-            order = rng.permutation(n_train)
-            if train_cfg.max_train_windows > 0:
-                order = order[: train_cfg.max_train_windows]
-            batch_size = per_rank_batch
-        batches = _batches(ddp.shard(order, info), batch_size)
-        sums = torch.zeros(4, dtype=torch.float64)  # loss, nll, pos, windows
-        guard.reset_stats()
-        train_model.train()
-        bar = Progress(len(batches), desc=f"epoch {epoch + 1}/{train_cfg.epochs} {stage}", unit="batch",
-                       enabled=(progress if info.is_main else False))
-        for step_in_epoch, idx in enumerate(batches):
-            step = (epoch - stage_first) * steps_per_epoch + step_in_epoch
-            if seq:  # the schedule advances by window epochs, whatever the number of segment steps in one
-                step = (epoch - stage_first + step_in_epoch / len(batches)) * steps_per_epoch
-            lr = cosine_lr(train_cfg.lr, step, stage_steps)
-            for group in optimizer.param_groups:
-                group["lr"] = lr
-            if seq:  # the newest seq_rows steps of each window tile its segment
-                onboard, z_gt, d_gt = _to_tensors(data.train.get_segments(idx, seq_len, seq_rows), 0)
-                mean, var = guard(*train_model(onboard, rows=seq_rows))  # (b * seq_len / rows, rows, 5) each
-                mean = mean.reshape(len(idx), seq_len, -1)  # windows are segment-major, in time order
-                var = var.reshape(len(idx), seq_len, -1)
-                pos_reduction, n_items = "mean", len(idx) * seq_len // seq_rows  # n_items: windows
-            else:
-                onboard, z, d_gt = _to_tensors(data.train.get(idx), H)
-                mean, var = guard(*train_model(onboard))  # (b, L-H, 5) each
-                z_gt = z[:, H:]
-                pos_reduction, n_items = "sum", len(idx)
-            nll = nll_loss(mean, var, z_gt, model.z_std, train_cfg.nll_reduction)  # (b,)
-            loss = nll.mean()
-            pos = torch.zeros(())
-            if stage == FINETUNE:  # the EKF from the ground truth at the first step of mean/var
-                d = filt.positions(mean, var, z_gt[:, 0])  # (b, L-H or seq_len, 2)
-                pos = position_loss(d, d_gt, train_cfg.beta, pos_reduction).mean()
-                loss = loss + pos.to(loss.dtype)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            grad_norm = torch.nn.utils.clip_grad_norm_(params, train_cfg.grad_clip).item()  # after all-reduce
-            # the decision uses the gradient norm only: after DDP's all-reduce it is the same on every
-            # rank (a NaN loss on one rank makes the shared gradients NaN), so all ranks agree.
-            ema = counters["grad_log_ema"]
-            if not math.isfinite(grad_norm):
-                counters["skipped_nonfinite"] += 1
-            elif math.isfinite(ema) and grad_norm > train_cfg.explode_ratio * math.exp(ema):
-                counters["skipped_exploding"] += 1
-            else:
-                log_g = math.log(max(grad_norm, 1e-30))
-                counters["grad_log_ema"] = log_g if not math.isfinite(ema) else 0.9 * ema + 0.1 * log_g
-                optimizer.step()
-                sums += torch.tensor([loss.item() * n_items, nll.mean().item() * n_items,
-                                      float(pos.item()) * n_items, n_items], dtype=torch.float64)
-            counters["steps"] += 1
-            bar.update()
-            if step_in_epoch % 5 == 0:
-                bar.set_postfix(f"loss {loss.item():.3g}")
-        bar.close()
-        sums = ddp.all_reduce_sum(sums, info)
-        train_fire = ddp.all_reduce_sum(torch.tensor([guard.n_fired, guard.n_predictions], dtype=torch.float64), info)
-        train_time = time.monotonic() - t_epoch
-        val = evaluate_windows(model, guard, data.val, batch_size=max(per_rank_batch, 64),
-                               with_position=filt is not None, filt=filt, beta=train_cfg.beta, info=info,
-                               nll_reduction=train_cfg.nll_reduction)
-        n_used = max(sums[3].item(), 1.0)
-        record: dict[str, Any] = {
-            "epoch": epoch + 1,
-            "stage": stage,
-            "lr_end": lr,
-            "train_loss": sums[0].item() / n_used,
-            "train_nll": sums[1].item() / n_used,
-            "train_pos": sums[2].item() / n_used if stage == FINETUNE else float("nan"),
-            "train_windows": int(sums[3].item()),
-            "train_guard_fire_rate": train_fire[0].item() / max(train_fire[1].item(), 1.0),
-            **val,
-            "train_time_s": train_time,
-            "epoch_time_s": time.monotonic() - t_epoch,
-            "train_windows_per_s": sums[3].item() / max(train_time, 1e-9),
-            **{k: int(v) for k, v in counters.items() if k != "grad_log_ema"},
-        }
-        score = val["val_nll"] + (val["val_pos"] if stage == FINETUNE else 0.0)
-        record["val_objective"] = score
-        improved = math.isfinite(score) and score < best_score
+        sums, lr = _train_epoch(loop, data, epoch, stage, lr, progress)
+        record = _epoch_record(loop, data, epoch, stage, lr, sums, t_epoch)
+        improved = math.isfinite(record["val_objective"]) and record["val_objective"] < best_score
         if improved:
-            best_score = score
+            best_score = record["val_objective"]
         record["best"] = improved
         history.append(record)
         if info.is_main:
-            _write_jsonl(metrics_path, record)
-            ckpt = make_checkpoint(model, preset, train_cfg, data.fingerprint, epoch=epoch + 1, stage=stage,
-                                   metrics=record, counters=counters, optimizer=optimizer, best_score=best_score)
-            save_checkpoint(ckpt, last_path)
-            if improved:
-                ckpt.pop("optimizer")
-                save_checkpoint(ckpt, best_path)
-            try:
-                from prml2_edge.training.plots import plot_history
-
-                plot_history(history, out_dir / "loss_curve.png")
-            except ImportError:  # matplotlib is part of the train extra; a missing plot is not fatal
-                log.warning("matplotlib not installed: no loss_curve.png")
+            _save_epoch(loop, record, history, improved, best_score, preset, data.fingerprint, out_dir, epoch, stage)
             if on_epoch is not None:
                 on_epoch(record)
     if info.is_main and not best_path.is_file() and last_path.is_file():
-        # every epoch had a non-finite validation objective: keep the last weights as "best"
-        ckpt = read_checkpoint(last_path)
-        ckpt.pop("optimizer", None)
-        save_checkpoint(ckpt, best_path)
+        _keep_last_as_best(last_path, best_path)
     if info.enabled:
         torch.distributed.barrier()
     return FitResult(out_dir=out_dir, best_path=best_path, last_path=last_path, metrics_path=metrics_path,
                      history=history, wall_s=time.monotonic() - t_start, counters=dict(counters), model=model)
+
+
+def _keep_last_as_best(last_path: Path, best_path: Path) -> None:
+    """Every epoch had a non-finite validation objective: keep the last weights as "best"."""
+    ckpt = read_checkpoint(last_path)
+    ckpt.pop("optimizer", None)
+    save_checkpoint(ckpt, best_path)
+
+
+def _check_data(data: TrainData) -> None:
+    if len(data.train) == 0:
+        raise ConfigError("no training windows: the training split is shorter than one window (L samples)")
+    if len(data.val) == 0:
+        raise ConfigError("no validation windows: the validation split is shorter than one window (L samples)")
+
+
+def _resume(resume: str | Path, model: Prml2Model, optimizer: torch.optim.Optimizer, counters: dict[str, float],
+            model_cfg: ModelConfig, train_cfg: TrainConfig, data: TrainData,
+            metrics_path: Path) -> tuple[int, float, list[dict]]:
+    """Load a ``last.pt`` into ``model``/``optimizer``/``counters``: ``(start epoch, best score, history so far)``."""
+    ckpt = read_checkpoint(resume)
+    if ckpt.get("optimizer") is None:
+        raise ModelError(f"{resume} has no optimizer state; resume from a run's last.pt")
+    if model_config_from_dict(ckpt["model_config"]) != model_cfg:
+        raise ConfigError(f"{resume} was trained with another model config; use the same --preset")
+    if train_config_from_dict(ckpt["train_config"]) != train_cfg:
+        raise ConfigError(f"{resume} was trained with other training options; repeat the original ones")
+    if ckpt["dataset_fingerprint"] != data.fingerprint:
+        raise ConfigError(f"{resume} was trained on another dataset (fingerprint {ckpt['dataset_fingerprint']})")
+    model.load_state_dict(ckpt["model"])
+    optimizer.load_state_dict(ckpt["optimizer"])
+    start_epoch = int(ckpt["epoch"])
+    best_score = math.inf if ckpt.get("best_score") is None else float(ckpt["best_score"])
+    counters.update(ckpt.get("counters", {}))
+    history: list[dict] = []
+    if metrics_path.is_file():
+        history = [json.loads(line) for line in metrics_path.read_text().splitlines() if line.strip()]
+        history = [h for h in history if h.get("epoch", 0) <= start_epoch]
+    return start_epoch, best_score, history
+
+
+def _start_metrics(out_dir: Path, metrics_path: Path, best_path: Path, resumed_history: list[dict] | None) -> None:
+    """Create the run directory; a new run starts an empty ``metrics.jsonl``, a resumed one keeps its epochs."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if resumed_history is None:
+        metrics_path.write_text("")
+        best_path.unlink(missing_ok=True)
+    else:  # drop records of epochs after the checkpoint
+        metrics_path.write_text("".join(json.dumps(h, sort_keys=True) + "\n" for h in resumed_history))
+
+
+def _make_loop(model: Prml2Model, optimizer: torch.optim.Optimizer, counters: dict[str, float],
+               model_cfg: ModelConfig, train_cfg: TrainConfig, info: ddp.DistInfo, n_train: int) -> _Loop:
+    train_model: torch.nn.Module = model
+    if info.enabled:
+        train_model = torch.nn.parallel.DistributedDataParallel(model)
+    filt = _Filter() if train_cfg.finetune else None
+    seq_len, seq_rows = train_cfg.ft_horizon_steps(), train_cfg.ft_rows
+    if train_cfg.finetune and seq_len and seq_rows > model_cfg.decoder_len:
+        raise ConfigError(f"ft_rows = {seq_rows} exceeds the model's {model_cfg.decoder_len} decoder steps")
+    return _Loop(model=model, train_model=train_model, guard=PhysicsGuard(mu=train_cfg.mu), optimizer=optimizer,
+                 params=[p for p in model.parameters() if p.requires_grad], filt=filt, cfg=train_cfg, info=info,
+                 counters=counters, H=model_cfg.encoder_len, seq_len=seq_len, seq_rows=seq_rows,
+                 steps_per_epoch=_steps_per_epoch(n_train, train_cfg, info.world_size),
+                 per_rank_batch=max(1, train_cfg.batch_size // info.world_size))
+
+
+def _schedule(loop: _Loop, stage: str) -> tuple[int, int]:
+    """``(first epoch, number of steps)`` of the cosine schedule the epochs of ``stage`` follow."""
+    cfg = loop.cfg
+    if cfg.lr_schedule == "cosine":  # one schedule over the whole run
+        return 0, cfg.epochs * loop.steps_per_epoch
+    # "cosine_restart": one schedule per stage
+    stage_first = 0 if stage == PRETRAIN else cfg.pretrain_epochs()
+    stage_epochs = cfg.pretrain_epochs() if stage == PRETRAIN else cfg.epochs - stage_first
+    return stage_first, stage_epochs * loop.steps_per_epoch
+
+
+def _epoch_batches(loop: _Loop, data: TrainData, epoch: int, seq: bool) -> list[np.ndarray]:
+    """This rank's batches of one epoch: window indices, or segment starts when ``seq``."""
+    cfg = loop.cfg
+    n_train = len(data.train)
+    rng = np.random.default_rng([cfg.seed, epoch])
+    if seq:  # as many windows per epoch as the window epochs (each segment takes seq_len / seq_rows)
+        candidates = data.train.segment_starts(loop.seq_len, cfg.window_stride)
+        if len(candidates) == 0:
+            raise ConfigError(f"no training segment of {cfg.ft_horizon_s:g} s (+ one window of history) "
+                              "fits in a drive's training split; lower ft_horizon_s")
+        n_seg = max(1, round(_windows_per_epoch(n_train, cfg) * loop.seq_rows / loop.seq_len))
+        order = candidates[rng.permutation(len(candidates))[:n_seg]]
+        batch_size = max(1, cfg.ft_segments // loop.info.world_size)
+    else:
+        order = rng.permutation(n_train)
+        if cfg.max_train_windows > 0:
+            order = order[: cfg.max_train_windows]
+        batch_size = loop.per_rank_batch
+    return _batches(ddp.shard(order, loop.info), batch_size)
+
+
+def _train_epoch(loop: _Loop, data: TrainData, epoch: int, stage: str, lr: float,
+                 progress: bool | None) -> tuple[torch.Tensor, float]:
+    """One epoch of steps: the summed ``(loss, nll, pos, windows)`` over applied steps (all ranks) and the last lr."""
+    cfg = loop.cfg
+    stage_first, stage_steps = _schedule(loop, stage)
+    seq = stage == FINETUNE and loop.seq_len > 0  # fine-tuning over segments, the EKF across windows
+    batches = _epoch_batches(loop, data, epoch, seq)
+    sums = torch.zeros(4, dtype=torch.float64)  # loss, nll, pos, windows
+    loop.guard.reset_stats()
+    loop.train_model.train()
+    bar = Progress(len(batches), desc=f"epoch {epoch + 1}/{cfg.epochs} {stage}", unit="batch",
+                   enabled=(progress if loop.info.is_main else False))
+    for step_in_epoch, idx in enumerate(batches):
+        step = (epoch - stage_first) * loop.steps_per_epoch + step_in_epoch
+        if seq:  # the schedule advances by window epochs, whatever the number of segment steps in one
+            step = (epoch - stage_first + step_in_epoch / len(batches)) * loop.steps_per_epoch
+        lr = cosine_lr(cfg.lr, step, stage_steps)
+        for group in loop.optimizer.param_groups:
+            group["lr"] = lr
+        loss, nll, pos, n_items = _losses(loop, data, idx, stage, seq)
+        if _optimizer_step(loop, loss):
+            sums += torch.tensor([loss.item() * n_items, nll.mean().item() * n_items,
+                                  float(pos.item()) * n_items, n_items], dtype=torch.float64)
+        loop.counters["steps"] += 1
+        bar.update()
+        if step_in_epoch % 5 == 0:
+            bar.set_postfix(f"loss {loss.item():.3g}")
+    bar.close()
+    return ddp.all_reduce_sum(sums, loop.info), lr
+
+
+def _losses(loop: _Loop, data: TrainData, idx: np.ndarray, stage: str,
+            seq: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
+    """``(loss, per-item NLL, position term, items)`` of one batch (items: windows)."""
+    cfg, guard = loop.cfg, loop.guard
+    if seq:  # the newest seq_rows steps of each window tile its segment
+        seq_len, seq_rows = loop.seq_len, loop.seq_rows
+        onboard, z_gt, d_gt = _to_tensors(data.train.get_segments(idx, seq_len, seq_rows), 0)
+        mean, var = guard(*loop.train_model(onboard, rows=seq_rows))  # (b * seq_len / rows, rows, 5) each
+        mean = mean.reshape(len(idx), seq_len, -1)  # windows are segment-major, in time order
+        var = var.reshape(len(idx), seq_len, -1)
+        pos_reduction, n_items = "mean", len(idx) * seq_len // seq_rows  # n_items: windows
+    else:
+        onboard, z, d_gt = _to_tensors(data.train.get(idx), loop.H)
+        mean, var = guard(*loop.train_model(onboard))  # (b, L-H, 5) each
+        z_gt = z[:, loop.H:]
+        pos_reduction, n_items = "sum", len(idx)
+    nll = nll_loss(mean, var, z_gt, loop.model.z_std, cfg.nll_reduction)  # (b,)
+    loss = nll.mean()
+    pos = torch.zeros(())
+    if stage == FINETUNE:  # the EKF from the ground truth at the first step of mean/var
+        d = loop.filt.positions(mean, var, z_gt[:, 0])  # (b, L-H or seq_len, 2)
+        pos = position_loss(d, d_gt, cfg.beta, pos_reduction).mean()
+        loss = loss + pos.to(loss.dtype)
+    return loss, nll, pos, n_items
+
+
+def _optimizer_step(loop: _Loop, loss: torch.Tensor) -> bool:
+    """Backpropagate ``loss`` and step, unless the gradient norm is not finite or explodes; True when stepped."""
+    counters = loop.counters
+    loop.optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    grad_norm = torch.nn.utils.clip_grad_norm_(loop.params, loop.cfg.grad_clip).item()  # after all-reduce
+    # the decision uses the gradient norm only: after DDP's all-reduce it is the same on every
+    # rank (a NaN loss on one rank makes the shared gradients NaN), so all ranks agree.
+    ema = counters["grad_log_ema"]
+    if not math.isfinite(grad_norm):
+        counters["skipped_nonfinite"] += 1
+        return False
+    if math.isfinite(ema) and grad_norm > loop.cfg.explode_ratio * math.exp(ema):
+        counters["skipped_exploding"] += 1
+        return False
+    log_g = math.log(max(grad_norm, 1e-30))
+    counters["grad_log_ema"] = log_g if not math.isfinite(ema) else 0.9 * ema + 0.1 * log_g
+    loop.optimizer.step()
+    return True
+
+
+def _epoch_record(loop: _Loop, data: TrainData, epoch: int, stage: str, lr: float, sums: torch.Tensor,
+                  t_epoch: float) -> dict[str, Any]:
+    """Validate and build the epoch's log record (``best`` is added by the caller)."""
+    cfg, guard, info = loop.cfg, loop.guard, loop.info
+    train_fire = ddp.all_reduce_sum(torch.tensor([guard.n_fired, guard.n_predictions], dtype=torch.float64), info)
+    train_time = time.monotonic() - t_epoch
+    val = evaluate_windows(loop.model, guard, data.val, batch_size=max(loop.per_rank_batch, 64),
+                           with_position=loop.filt is not None, filt=loop.filt, beta=cfg.beta, info=info,
+                           nll_reduction=cfg.nll_reduction)
+    n_used = max(sums[3].item(), 1.0)
+    record: dict[str, Any] = {
+        "epoch": epoch + 1,
+        "stage": stage,
+        "lr_end": lr,
+        "train_loss": sums[0].item() / n_used,
+        "train_nll": sums[1].item() / n_used,
+        "train_pos": sums[2].item() / n_used if stage == FINETUNE else float("nan"),
+        "train_windows": int(sums[3].item()),
+        "train_guard_fire_rate": train_fire[0].item() / max(train_fire[1].item(), 1.0),
+        **val,
+        "train_time_s": train_time,
+        "epoch_time_s": time.monotonic() - t_epoch,
+        "train_windows_per_s": sums[3].item() / max(train_time, 1e-9),
+        **{k: int(v) for k, v in loop.counters.items() if k != "grad_log_ema"},
+    }
+    record["val_objective"] = val["val_nll"] + (val["val_pos"] if stage == FINETUNE else 0.0)
+    return record
+
+
+def _save_epoch(loop: _Loop, record: dict, history: list[dict], improved: bool, best_score: float, preset: str,
+                fingerprint: str, out_dir: Path, epoch: int, stage: str) -> None:
+    """Rank 0 after an epoch: the metrics line, ``last.pt``, ``best.pt`` when improved, the loss curve."""
+    _write_jsonl(out_dir / "metrics.jsonl", record)
+    ckpt = make_checkpoint(loop.model, preset, loop.cfg, fingerprint, epoch=epoch + 1, stage=stage,
+                           metrics=record, counters=loop.counters, optimizer=loop.optimizer, best_score=best_score)
+    save_checkpoint(ckpt, out_dir / "last.pt")
+    if improved:
+        ckpt.pop("optimizer")
+        save_checkpoint(ckpt, out_dir / "best.pt")
+    try:
+        from prml2_edge.training.plots import plot_history
+
+        plot_history(history, out_dir / "loss_curve.png")
+    except ImportError:  # matplotlib is part of the train extra; a missing plot is not fatal
+        log.warning("matplotlib not installed: no loss_curve.png")
 
 
 def describe(model_cfg: ModelConfig, train_cfg: TrainConfig) -> dict:

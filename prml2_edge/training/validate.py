@@ -22,10 +22,10 @@ import torch
 
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import Ekf, default_initial_covariance, default_process_noise
+from prml2_edge.evaluation.osd import drive_bias, osd_baseline_z
 from prml2_edge.guard import physics_guard
 from prml2_edge.progress import Progress
 from prml2_edge.training.model import Prml2Model
-from prml2_edge.training.osd_baseline import drive_bias, osd_baseline_z
 
 DR_WINDOW_S = 60.0
 
@@ -140,7 +140,8 @@ def dead_reckon(z_mean: np.ndarray, z_var: np.ndarray, z_gt: np.ndarray, pose_gt
     for k in range(1, n_steps):
         t = start + k
         ekf.step(z_mean[t], z_var[t])
-        errors[k] = math.hypot(ekf.x[0] - pose_gt[t, 0], ekf.x[1] - pose_gt[t, 1])
+        d_x, d_y = ekf.x[schema.EkfState.POS] - pose_gt[t, :2]
+        errors[k] = math.hypot(d_x, d_y)
     return errors
 
 

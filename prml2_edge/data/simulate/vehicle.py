@@ -111,21 +111,8 @@ def simulate_vehicle(params: VehicleParams, mu: float, delta_cmd: np.ndarray, ac
     """
     p = params
     n = len(delta_cmd)
-    m, iz, lf, lr, L = p.mass_kg, p.yaw_inertia_kgm2, p.lf_m, p.lr_m, p.wheelbase_m
-    g = schema.G_MPS2
-    h = p.cog_height_m
-    fz0_f = m * g * lr / L / 2.0
-    fz0_r = m * g * lf / L / 2.0
-    # magic-formula B from the cornering stiffness; lower mu also softens the tyre a little
-    stiff_scale = 0.45 + 0.55 * min(mu, 1.0)
-    b_f = p.cornering_stiffness_front_npr * stiff_scale / (p.mf_c_lat * mu * fz0_f)
-    b_r = p.cornering_stiffness_rear_npr * stiff_scale / (p.mf_c_lat * mu * fz0_r)
-    c_lat, e_lat, ls = p.mf_c_lat, p.mf_e_lat, p.load_sensitivity
-    tw = p.track_m
-    d_max = p.max_wheel_angle_rad
-    ks_f = p.front_roll_share * m * h / tw
-    ks_r = (1.0 - p.front_roll_share) * m * h / tw
-    dt = 1.0 / INTERNAL_RATE_HZ
+    m, L, g, d_max = p.mass_kg, p.wheelbase_m, schema.G_MPS2, p.max_wheel_angle_rad
+    forces, deriv = _dynamics(p, mu)
     free = np.ones(n, dtype=bool) if free_steer is None else free_steer
 
     out = np.zeros((n, 16))
@@ -133,6 +120,101 @@ def simulate_vehicle(params: VehicleParams, mu: float, delta_cmd: np.ndarray, ac
     ax_prev, ay_prev = 0.0, 0.0
     delta = 0.0
     kp_speed = 0.9  # 1/s
+    for k in range(n):
+        # driver: speed tracking on top of the plan's feed-forward
+        vr = float(v_ref[k])
+        ax_dem = float(accel_cmd[k]) + kp_speed * (vr - vx)
+        delta = float(delta_cmd[k])
+        if free[k] and vx > 3.0:
+            delta = _steer_home(delta, vx, x, y, psi, home_radius_m, L)
+        delta = max(-d_max, min(d_max, delta))
+        vx, vy, r, x, y, psi, ax_prev, ay_prev = _integrate_sample(deriv, vx, vy, r, x, y, psi, ax_prev, ay_prev,
+                                                                   delta, ax_dem)
+        ax, ay, _, fx_f, fx_r, fz, brake = forces(vx, vy, r, delta, ax_dem, ax_prev, ay_prev)
+        if vx == 0.0 and ax_dem <= 0.05:
+            ax = ay = 0.0
+            fx_f = fx_r = 0.0
+            brake = max(brake, 0.3 * m * g)  # driver holds the car on the brake
+        out[k] = (vx, vy, r, ax, ay, x, y, psi, delta, fx_f, fx_r, fz[0], fz[1], fz[2], fz[3], brake)
+        if progress_cb is not None and k % 500 == 499:
+            progress_cb(500)
+    if progress_cb is not None:
+        progress_cb(n % 500)
+    return VehicleTrace(
+        v_x=out[:, 0], v_y=out[:, 1], r=out[:, 2], a_x=out[:, 3], a_y=out[:, 4], x=out[:, 5], y=out[:, 6],
+        psi=out[:, 7], delta=out[:, 8], fx_front_n=out[:, 9], fx_rear_n=out[:, 10], fz_n=out[:, 11:15],
+        brake_force_n=out[:, 15], mu=mu,
+    )
+
+
+def _steer_home(delta: float, vx: float, x: float, y: float, psi: float, home_radius_m: float, L: float) -> float:
+    """The driver's wheel angle plus a gentle curvature towards the origin beyond ``home_radius_m``."""
+    k_home = 0.004  # 1/m per rad of heading error
+    dist = math.hypot(x, y)
+    if dist > home_radius_m:
+        err = math.atan2(-y, -x) - psi
+        err = math.atan2(math.sin(err), math.cos(err))
+        k_max = 1.5 / (vx * vx)  # at most 1.5 m/s^2 of lateral acceleration
+        kappa = max(-k_max, min(k_max, k_home * err * min(1.0, (dist - home_radius_m) / 200.0)))
+        delta += math.atan(L * kappa)
+    return delta
+
+
+def _integrate_sample(deriv, vx, vy, r, x, y, psi, ax_prev, ay_prev, delta, ax_dem):
+    """Heun steps over one 50 Hz sample; returns the new ``(vx, vy, r, x, y, psi, ax_prev, ay_prev)``.
+
+    A car at rest with no drive demand stays at rest (the brakes hold it; no reversing).
+    """
+    dt = 1.0 / INTERNAL_RATE_HZ
+    for _ in range(STEPS_PER_SAMPLE):
+        if vx <= 0.0 and ax_dem <= 0.05:
+            return 0.0, 0.0, 0.0, x, y, psi, 0.0, 0.0
+        k1 = deriv(vx, vy, r, psi, delta, ax_dem, ax_prev, ay_prev)
+        s1 = (vx + dt * k1[0], vy + dt * k1[1], r + dt * k1[2], psi + dt * k1[5])
+        k2 = deriv(s1[0], s1[1], s1[2], s1[3], delta, ax_dem, ax_prev, ay_prev)
+        h2 = 0.5 * dt
+        vx += h2 * (k1[0] + k2[0])
+        vy += h2 * (k1[1] + k2[1])
+        r += h2 * (k1[2] + k2[2])
+        x += h2 * (k1[3] + k2[3])
+        y += h2 * (k1[4] + k2[4])
+        psi += h2 * (k1[5] + k2[5])
+        if vx < 0.0:  # brakes hold the car; no reversing
+            vx, vy, r = 0.0, 0.0, 0.0
+        ax_prev = 0.5 * (k1[0] + k2[0]) - r * vy
+        ay_prev = 0.5 * (k1[1] + k2[1]) + r * vx
+    return vx, vy, r, x, y, psi, ax_prev, ay_prev
+
+
+def _axle_constants(p: VehicleParams, mu: float) -> tuple[float, float, float, float, float, float]:
+    """Static wheel loads front/rear [N], magic-formula B front/rear, lateral load transfer per m/s^2 front/rear."""
+    m, lf, lr, L, h = p.mass_kg, p.lf_m, p.lr_m, p.wheelbase_m, p.cog_height_m
+    g = schema.G_MPS2
+    fz0_f = m * g * lr / L / 2.0
+    fz0_r = m * g * lf / L / 2.0
+    # magic-formula B from the cornering stiffness; lower mu also softens the tyre a little
+    stiff_scale = 0.45 + 0.55 * min(mu, 1.0)
+    b_f = p.cornering_stiffness_front_npr * stiff_scale / (p.mf_c_lat * mu * fz0_f)
+    b_r = p.cornering_stiffness_rear_npr * stiff_scale / (p.mf_c_lat * mu * fz0_r)
+    tw = p.track_m
+    ks_f = p.front_roll_share * m * h / tw
+    ks_r = (1.0 - p.front_roll_share) * m * h / tw
+    return fz0_f, fz0_r, b_f, b_r, ks_f, ks_r
+
+
+def _dynamics(p: VehicleParams, mu: float):
+    """The single-track model of ``p`` on friction ``mu``: ``(forces, deriv)``.
+
+    ``forces(vx, vy, r, delta, ax_dem, ax_prev, ay_prev)`` gives ``(a_x, a_y, r_dot, fx_front, fx_rear,
+    fz (fl, fr, rl, rr), brake)``; ``deriv(vx, vy, r, psi, delta, ax_dem, ax_prev, ay_prev)`` the time
+    derivatives of ``(vx, vy, r, x, y, psi)``. ``ax_prev``/``ay_prev`` are the previous step's
+    accelerations (load transfer).
+    """
+    m, iz, lf, lr, L = p.mass_kg, p.yaw_inertia_kgm2, p.lf_m, p.lr_m, p.wheelbase_m
+    g = schema.G_MPS2
+    h = p.cog_height_m
+    fz0_f, fz0_r, b_f, b_r, ks_f, ks_r = _axle_constants(p, mu)
+    c_lat, e_lat, ls = p.mf_c_lat, p.mf_e_lat, p.load_sensitivity
 
     def wheel_fy(alpha: float, fz: float, fx: float, b: float, fz0: float) -> float:
         mu_i = mu * (1.0 - ls * (fz - fz0) / fz0)
@@ -142,7 +224,7 @@ def simulate_vehicle(params: VehicleParams, mu: float, delta_cmd: np.ndarray, ac
         ba = b * alpha
         return math.sqrt(fmax2) * math.sin(c_lat * math.atan(ba - e_lat * (ba - math.atan(ba))))
 
-    def forces(vx, vy, r, delta, ax_dem):
+    def forces(vx, vy, r, delta, ax_dem, ax_prev, ay_prev):
         # normal loads from the previous accelerations (clamped: no wheel lift modelling)
         fzf = fz0_f - m * ax_prev * h / L / 2.0
         fzr = fz0_r + m * ax_prev * h / L / 2.0
@@ -180,8 +262,8 @@ def simulate_vehicle(params: VehicleParams, mu: float, delta_cmd: np.ndarray, ac
         mz = lf * (fx_f * sd + fy_f * cd) - lr * fy_r
         return fxv / m, fyv / m, mz / iz, fx_f, fx_r, (fz_fl, fz_fr, fz_rl, fz_rr), brake
 
-    def deriv(vx, vy, r, psi, delta, ax_dem):
-        ax, ay, rdot_dyn, *_ = forces(vx, vy, r, delta, ax_dem)
+    def deriv(vx, vy, r, psi, delta, ax_dem, ax_prev, ay_prev):
+        ax, ay, rdot_dyn, *_ = forces(vx, vy, r, delta, ax_dem, ax_prev, ay_prev)
         dvx = ax + r * vy
         dvy_dyn = ay - r * vx
         # kinematic blend below 3 m/s: relax v_y and r towards the kinematic single track
@@ -196,52 +278,4 @@ def simulate_vehicle(params: VehicleParams, mu: float, delta_cmd: np.ndarray, ac
         c, s = math.cos(psi), math.sin(psi)
         return dvx, dvy, rdot, vx * c - vy * s, vx * s + vy * c, r
 
-    k_home = 0.004  # 1/m per rad of heading error
-    for k in range(n):
-        # driver: speed tracking on top of the plan's feed-forward
-        vr = float(v_ref[k])
-        ax_dem = float(accel_cmd[k]) + kp_speed * (vr - vx)
-        delta = float(delta_cmd[k])
-        if free[k] and vx > 3.0:
-            dist = math.hypot(x, y)
-            if dist > home_radius_m:
-                err = math.atan2(-y, -x) - psi
-                err = math.atan2(math.sin(err), math.cos(err))
-                k_max = 1.5 / (vx * vx)  # at most 1.5 m/s^2 of lateral acceleration
-                kappa = max(-k_max, min(k_max, k_home * err * min(1.0, (dist - home_radius_m) / 200.0)))
-                delta += math.atan(L * kappa)
-        delta = max(-d_max, min(d_max, delta))
-        for _ in range(STEPS_PER_SAMPLE):
-            if vx <= 0.0 and ax_dem <= 0.05:
-                vx, vy, r = 0.0, 0.0, 0.0
-                ax_prev, ay_prev = 0.0, 0.0
-                break
-            k1 = deriv(vx, vy, r, psi, delta, ax_dem)
-            s1 = (vx + dt * k1[0], vy + dt * k1[1], r + dt * k1[2], psi + dt * k1[5])
-            k2 = deriv(s1[0], s1[1], s1[2], s1[3], delta, ax_dem)
-            h2 = 0.5 * dt
-            vx += h2 * (k1[0] + k2[0])
-            vy += h2 * (k1[1] + k2[1])
-            r += h2 * (k1[2] + k2[2])
-            x += h2 * (k1[3] + k2[3])
-            y += h2 * (k1[4] + k2[4])
-            psi += h2 * (k1[5] + k2[5])
-            if vx < 0.0:  # brakes hold the car; no reversing
-                vx, vy, r = 0.0, 0.0, 0.0
-            ax_prev = 0.5 * (k1[0] + k2[0]) - r * vy
-            ay_prev = 0.5 * (k1[1] + k2[1]) + r * vx
-        ax, ay, _, fx_f, fx_r, fz, brake = forces(vx, vy, r, delta, ax_dem)
-        if vx == 0.0 and ax_dem <= 0.05:
-            ax = ay = 0.0
-            fx_f = fx_r = 0.0
-            brake = max(brake, 0.3 * m * g)  # driver holds the car on the brake
-        out[k] = (vx, vy, r, ax, ay, x, y, psi, delta, fx_f, fx_r, fz[0], fz[1], fz[2], fz[3], brake)
-        if progress_cb is not None and k % 500 == 499:
-            progress_cb(500)
-    if progress_cb is not None:
-        progress_cb(n % 500)
-    return VehicleTrace(
-        v_x=out[:, 0], v_y=out[:, 1], r=out[:, 2], a_x=out[:, 3], a_y=out[:, 4], x=out[:, 5], y=out[:, 6],
-        psi=out[:, 7], delta=out[:, 8], fx_front_n=out[:, 9], fx_rear_n=out[:, 10], fz_n=out[:, 11:15],
-        brake_force_n=out[:, 15], mu=mu,
-    )
+    return forces, deriv

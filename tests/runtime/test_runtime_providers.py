@@ -3,7 +3,7 @@
 import pytest
 
 from prml2_edge.errors import ConfigError
-from prml2_edge.service.providers import CPU, CUDA, TENSORRT, select_providers
+from prml2_edge.runtime.providers import CPU, CUDA, TENSORRT, select_providers
 
 ORIN = [TENSORRT, CUDA, CPU]
 

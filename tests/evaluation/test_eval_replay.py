@@ -20,14 +20,15 @@ import numpy as np
 import pytest
 
 from prml2_edge import schema
-from prml2_edge.can.signal_map import load_map_and_dbc
+from prml2_edge.can.signal_map import load_map_and_dbc, resolve_map
 from prml2_edge.cli.main import main
 from prml2_edge.data.datasets import generate_dataset, load_dataset
 from prml2_edge.runtime.inference import OnnxModel, default_model_path
-from prml2_edge.runtime.initial_pose import InitialPose, initial_state, psi_rad_to_heading_deg
+from prml2_edge.runtime.initial_pose import InitialPose, initial_state
 from prml2_edge.runtime.localizer import StreamingLocalizer
-from prml2_edge.runtime.pipeline import MemorySink, Pipeline, resolve_map, run_source
+from prml2_edge.runtime.pipeline import MemorySink, Pipeline, run_source
 from prml2_edge.runtime.source import LogReplay
+from prml2_edge.schema import psi_rad_to_heading_deg
 
 POS_ROUNDOFF_M = 1e-6
 

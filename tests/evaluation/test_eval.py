@@ -140,7 +140,14 @@ def test_cli_writes_tables_metrics_plots_and_tum(tiny, tmp_path, capsys):
     for title in ("Table 1", "Table 2", "Table 3"):
         assert title in report
     metrics = json.loads((out / "metrics.json").read_text())
-    assert set(metrics["models"]) == {"OSD-Baseline", "PRML2"}
+    # every model with and without the filter's calibration (default --calibration both)
+    assert set(metrics["models"]) == {"OSD-Baseline", "PRML2", "OSD-Baseline +cal", "PRML2 +cal"}
+    assert metrics["specs"]["PRML2 +cal"]["calibration"] and not metrics["specs"]["PRML2"]["calibration"]
+    # the deployment protocol (GNSS pre-roll, then the outage) and the coverage of the reported ellipses
+    dep = metrics["models"]["PRML2 +cal"]["deployment"]
+    assert dep["dead_reckoning_60s"]["n_windows"] >= 1 and "calibration_at_outage" in dep
+    assert 0.0 <= metrics["models"]["PRML2"]["test"]["dead_reckoning_60s"]["coverage_2sigma_pct"] <= 100.0
+    assert "Table 2c" in report
     dry = metrics["models"]["PRML2"]["test"]
     assert dry["dead_reckoning_60s"]["n_windows"] == 2
     assert metrics["models"]["PRML2"]["snow"]["dead_reckoning_60s"]["n_windows"] == 1

@@ -15,11 +15,12 @@ from prml2_edge.can.signal_map import load_map_and_dbc, shipped_map_path
 from prml2_edge.data.simulate import simulate_drive
 from prml2_edge.runtime.assembler import Assembler
 from prml2_edge.runtime.decode import FrameDecoder
-from prml2_edge.runtime.initial_pose import InitialPose, psi_rad_to_heading_deg
+from prml2_edge.runtime.initial_pose import InitialPose
 from prml2_edge.runtime.pipeline import MemorySink, Pipeline, run_source
 from prml2_edge.runtime.source import LogReplay
 from prml2_edge.runtime.stats import FrameStats
 from prml2_edge.runtime.status import FrameStatus
+from prml2_edge.schema import psi_rad_to_heading_deg
 
 IDX = {n: s.index for n, s in schema.SIGNAL_BY_NAME.items()}
 MAPS = ["vw_mqb", "hyundai_2015_ccan"]

@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 
 from prml2_edge.errors import ConfigError
-from prml2_edge.runtime.decode import GnssFix
-from prml2_edge.runtime.initial_pose import InitialPose, initial_state, psi_rad_to_heading_deg
+from prml2_edge.runtime.initial_pose import InitialPose, initial_state
 from prml2_edge.runtime.latency import LatencyRecorder
+from prml2_edge.runtime.rows import GnssFix
 from prml2_edge.runtime.window import Window
+from prml2_edge.schema import psi_rad_to_heading_deg
 
 
 def test_window_is_the_last_rows_in_order_and_contiguous(rng):

@@ -13,10 +13,11 @@ from prml2_edge import schema
 from prml2_edge.can.encode import encode_drive_to_log
 from prml2_edge.data.simulate import simulate_drive
 from prml2_edge.runtime.demo import trajectory_metrics
-from prml2_edge.runtime.initial_pose import InitialPose, psi_rad_to_heading_deg
+from prml2_edge.runtime.initial_pose import InitialPose
 from prml2_edge.runtime.pipeline import MemorySink, Pipeline, run_source
 from prml2_edge.runtime.source import LogReplay, count_log_frames
 from prml2_edge.runtime.status import PoseStatus
+from prml2_edge.schema import psi_rad_to_heading_deg
 
 GNSS_S = 8.0
 

@@ -13,7 +13,7 @@ pytest.importorskip("onnx")  # the test model is built with onnx.helper
 
 from runtime_models import make_kinematic_model  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 # torch blocked: the edge benchmark must not need it
 _RUN = ("import sys; sys.modules['torch'] = None; from prml2_edge.cli.main import main; "

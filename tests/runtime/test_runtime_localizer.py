@@ -10,12 +10,12 @@ from runtime_models import make_kinematic_model
 
 from prml2_edge import schema
 from prml2_edge.data.simulate import simulate_drive
-from prml2_edge.runtime.decode import GnssFix
 from prml2_edge.runtime.inference import OnnxModel
-from prml2_edge.runtime.initial_pose import InitialPose, initial_state, psi_rad_to_heading_deg
+from prml2_edge.runtime.initial_pose import InitialPose, initial_state
 from prml2_edge.runtime.localizer import LocalizerConfig, StreamingLocalizer
+from prml2_edge.runtime.rows import GnssFix
 from prml2_edge.runtime.status import PoseStatus
-from prml2_edge.schema import EkfState
+from prml2_edge.schema import EkfState, psi_rad_to_heading_deg
 
 L = schema.WINDOW_LEN
 

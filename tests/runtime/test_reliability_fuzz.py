@@ -20,11 +20,11 @@ from runtime_models import make_kinematic_model
 from prml2_edge.can.encode import encode_drive_to_log
 from prml2_edge.data.simulate import simulate_drive
 from prml2_edge.ekf.numpy_ekf import STATE_DIM, Ekf, StepStatus
-from prml2_edge.runtime.faults import random_frame
 from prml2_edge.runtime.inference import OnnxModel
 from prml2_edge.runtime.initial_pose import InitialPose
 from prml2_edge.runtime.pipeline import Pipeline
 from prml2_edge.runtime.status import PoseStatus
+from prml2_edge.testing.faults import random_frame
 
 N_FUZZ = 100_000
 KNOWN_IDS = [0xA0, 0xA1, 0xC2, 0x130, 0x140, 0x158, 0x610]

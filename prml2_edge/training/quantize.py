@@ -1,4 +1,4 @@
-"""int8 variants of a PRML2 ONNX model for the latency benchmark (onnxruntime dynamic quantisation).
+"""int8 variants of a PRML2 ONNX model for ``prml2 export --int8`` and the latency benchmark (dynamic quantisation).
 
 Dynamic quantisation stores the MatMul weights as int8 and quantises activations at run
 time (u8 x s8 products, the AVX-512 VNNI / Arm dot-product path). It needs the ``onnx``

@@ -11,7 +11,7 @@ import pytest
 from prml2_edge import schema
 from prml2_edge.data.revsted import Drive
 from prml2_edge.data.windows import build_windows
-from prml2_edge.training.osd_baseline import osd_baseline_z, standstill_bias, standstill_mask
+from prml2_edge.evaluation.osd import osd_baseline_z, standstill_bias, standstill_mask
 
 YAW_BIAS_RADPS = 0.05
 LAT_BIAS_MPS2 = 0.1

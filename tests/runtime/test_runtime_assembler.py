@@ -7,7 +7,7 @@ import pytest
 
 from prml2_edge import schema
 from prml2_edge.runtime.assembler import Assembler
-from prml2_edge.runtime.decode import DecodedFrame, GnssFix
+from prml2_edge.runtime.rows import DecodedFrame, GnssFix
 from prml2_edge.runtime.stats import FrameStats
 from prml2_edge.runtime.status import FrameStatus
 

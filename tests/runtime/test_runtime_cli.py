@@ -164,8 +164,8 @@ def test_demo_runs_with_the_shipped_model(capsys, tmp_path):
 def test_deploy_config_with_flag_overrides(repo_root, files, tmp_path):
     import argparse
 
-    from prml2_edge.runtime.app import build_pipeline, config_from_args
-    from prml2_edge.runtime.cli_args import add_pipeline_arguments
+    from prml2_edge.cli.runtime_app import build_pipeline, config_from_args
+    from prml2_edge.cli.runtime_args import add_pipeline_arguments
 
     _, model, _ = files
     parser = argparse.ArgumentParser()

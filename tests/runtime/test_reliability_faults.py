@@ -1,7 +1,7 @@
 """Fault injection over the replay path: one scenario each, status flags, error bounds, frame accounting.
 
 A 24 s simulated drive (GNSS for the first 4 s, then dead reckoning) is encoded with the project
-DBC; each scenario rewrites its frames with :mod:`prml2_edge.runtime.faults`, writes a candump log
+DBC; each scenario rewrites its frames with :mod:`prml2_edge.testing.faults`, writes a candump log
 and replays it through ``LogReplay`` (python-can virtual bus) -> ``Pipeline``. Timing is checked in
 50 Hz frame periods (``DT``): a signal's validity flag and the degraded flag change within 3
 periods of a fault's start and end (a frozen value can only be recognised after the hold time).
@@ -22,11 +22,11 @@ from prml2_edge.can.signal_map import load_dbc
 from prml2_edge.data.simulate import simulate_drive
 from prml2_edge.resources import project_dbc_path
 from prml2_edge.runtime.assembler import YAW_RATE_STUCK
-from prml2_edge.runtime.faults import Fault, InjectionCounts, inject
 from prml2_edge.runtime.inference import OnnxModel
 from prml2_edge.runtime.pipeline import Pipeline, run_source
 from prml2_edge.runtime.source import LogReplay
 from prml2_edge.runtime.status import PoseStatus
+from prml2_edge.testing.faults import Fault, InjectionCounts, inject
 
 DT = schema.DT_S
 GNSS_S = 4.0
