@@ -23,6 +23,7 @@ the next fix.
 
 from __future__ import annotations
 
+import collections
 import math
 from dataclasses import dataclass
 
@@ -41,6 +42,7 @@ _SPEEDO = _SIG["speedometer_mps"].index
 _REAR = np.array([_SIG["wheel_speed_rl_mps"].index, _SIG["wheel_speed_rr_mps"].index])
 _WHEELS = np.array(schema.WHEEL_SPEED_INDICES)
 _YAW, _OMEGA, _VX = EkfState.YAW.start, EkfState.OMEGA_Z.start, EkfState.VEL.start
+_RESOLUTION_WINDOW = 200  # steps between distinct yaw-rate readings kept for the resolution estimate
 
 
 @dataclass(frozen=True)
@@ -75,6 +77,13 @@ class PoseFilter:
         self._prev_fix: tuple[GnssFix, float] | None = None  # the last fix and the wheel speed then
         self._confirmed = True  # a GNSS start is provisional until two consecutive fixes agree
         self._still_since: float | None = None
+        self._odo_anchor: tuple[float, np.ndarray] | None = None  # (t, fix position) the wheel distance is from
+        self._odo = np.zeros(2)  # wheel displacement since the anchor, world frame, along the filter's heading
+        self.n_scale_updates = 0
+        self._yaw_last: float | None = None
+        self._yaw_steps: collections.deque[float] = collections.deque(maxlen=_RESOLUTION_WINDOW)
+        self.yaw_resolution_radps = float(self.config.yaw_cue_resolution_radps)
+        self._yaw_cue_var = self._yaw_var()
         self.n_gnss_rejected = 0  # fixes refused by the innovation gate
         self.n_gnss_init_rejected = 0  # first fixes that the next fix or the wheels contradicted
         self.n_standstill_updates = 0
@@ -102,13 +111,20 @@ class PoseFilter:
              fix: GnssFix | None) -> FilterStep:
         if self.ekf is None or (fix is not None and not self._confirmed and not self._plausible(fix, values, valid)):
             return self._try_start(values, valid, t_s, fix)
-        ekf_status = self.ekf.step(est.z, est.z_var)
+        still = self.calibrated and self._still(values, valid, t_s)
+        # parked, the zero-velocity update replaces the model: its omega_z at rest is not its error while driving,
+        # and the yaw-rate offset it shares with the CAN yaw rate would learn the wrong value
+        skip_model = still and self.config.standstill_skips_model
+        ekf_status = self.ekf.step(None if skip_model else est.z, None if skip_model else est.z_var)
         model_used = ekf_status is StepStatus.SUCCESS
         cues = standstill = False
         if self.calibrated:
             cues = self._cues(values, valid)
-            standstill = self._standstill(values, valid, t_s)
+            standstill = still and self._zero_velocity()
+            self._odometry(values, valid)
         gnss_fused = fix is not None and self._fuse(fix, t_s)
+        if gnss_fused and self.calibrated:
+            self._scale_from_gnss(fix, t_s)
         return FilterStep(ekf_status, model_used, gnss_fused, cues, standstill)
 
     def _try_start(self, values: np.ndarray, valid: np.ndarray, t_s: float, fix: GnssFix | None) -> FilterStep:
@@ -160,9 +176,26 @@ class PoseFilter:
         self.ekf = None
         return False
 
+    def _yaw_var(self) -> float:
+        cfg = self.config
+        return cfg.yaw_cue_std_radps ** 2 + (cfg.yaw_cue_quant_gain * self.yaw_resolution_radps) ** 2
+
+    def _track_resolution(self, yaw: float) -> None:
+        """The yaw-rate signal's resolution from the steps between successive distinct readings."""
+        last, self._yaw_last = self._yaw_last, yaw
+        if last is None or yaw == last:
+            return
+        self._yaw_steps.append(abs(yaw - last))
+        if len(self._yaw_steps) == _RESOLUTION_WINDOW:
+            self.yaw_resolution_radps = float(np.percentile(self._yaw_steps, 10))
+            self._yaw_steps.clear()
+            self._yaw_cue_var = self._yaw_var()
+
     def _cues(self, values: np.ndarray, valid: np.ndarray) -> bool:
         cfg = self.config
         yaw = float(values[_YAW_RATE]) if valid[_YAW_RATE] else None
+        if yaw is not None:
+            self._track_resolution(yaw)
         wheel = None
         if valid[_REAR].all():
             w = float(np.mean(values[_REAR]))
@@ -170,12 +203,42 @@ class PoseFilter:
                 wheel = w
         if yaw is None and wheel is None:
             return False
-        status = self.ekf.update_cues(yaw, cfg.yaw_cue_std_radps ** 2, wheel,  # type: ignore[union-attr]
+        status = self.ekf.update_cues(yaw, self._yaw_cue_var, wheel,  # type: ignore[union-attr]
                                       cfg.wheel_cue_std_mps ** 2)
         return status is StepStatus.SUCCESS
 
-    def _standstill(self, values: np.ndarray, valid: np.ndarray, t_s: float) -> bool:
+    def _odometry(self, values: np.ndarray, valid: np.ndarray) -> None:
+        """Integrate the rear-axle wheel speed along the filter's heading; a gap or slow driving restarts it."""
+        if self._odo_anchor is None:
+            return
+        w = float(np.mean(values[_REAR])) if valid[_REAR].all() else math.nan
+        if not w >= self.config.scale_min_speed_mps:
+            self._odo_anchor = None
+            return
+        psi = self.ekf.x[_YAW]  # type: ignore[union-attr]
+        self._odo += w * self.dt_s * np.array([math.cos(psi), math.sin(psi)])
+
+    def _scale_from_gnss(self, fix: GnssFix, t_s: float) -> None:
+        """Wheel scale = wheel distance / GNSS distance - 1 over baselines of ``scale_baseline_s``, fed to the
+        scale state with the GNSS noise of the two end fixes (``2 sigma^2 / distance^2``)."""
         cfg = self.config
+        pos = np.array([fix.x_m, fix.y_m])
+        anchor = self._odo_anchor
+        if anchor is not None and t_s - anchor[0] >= cfg.scale_baseline_s:
+            d = pos - anchor[1]
+            dist2 = float(d @ d)
+            if dist2 > 1.0:
+                scale = float(self._odo @ d) / dist2 - 1.0
+                var = 2.0 * cfg.gnss_pos_std_m ** 2 / dist2 + cfg.scale_meas_floor ** 2
+                status = self.ekf.update_wheel_scale(scale, var)  # type: ignore[union-attr]
+                self.n_scale_updates += int(status is StepStatus.SUCCESS)
+            anchor = None
+        if anchor is None:
+            self._odo_anchor = (t_s, pos)
+            self._odo = np.zeros(2)
+
+    def _still(self, values: np.ndarray, valid: np.ndarray, t_s: float) -> bool:
+        """Standstill: every valid wheel speed 0 (and the speedometer) for ``standstill_hold_s``."""
         wheels_ok = valid[_WHEELS]
         still = bool(wheels_ok.any() and np.all(values[_WHEELS][wheels_ok] <= 0.0)
                      and (not valid[_SPEEDO] or values[_SPEEDO] <= 0.0))
@@ -184,8 +247,10 @@ class PoseFilter:
             return False
         if self._still_since is None:
             self._still_since = t_s
-        if t_s - self._still_since + 1e-9 < cfg.standstill_hold_s:
-            return False
+        return t_s - self._still_since + 1e-9 >= self.config.standstill_hold_s
+
+    def _zero_velocity(self) -> bool:
+        cfg = self.config
         status = self.ekf.update_standstill(cfg.standstill_std_mps ** 2,  # type: ignore[union-attr]
                                             cfg.standstill_yaw_std_radps ** 2)
         self.n_standstill_updates += int(status is StepStatus.SUCCESS)
@@ -270,5 +335,6 @@ class PoseFilter:
             out["calibration"] = {
                 "yaw_rate_offset_dps": math.degrees(est[0]), "yaw_rate_offset_std_dps": math.degrees(std[0]),
                 "wheel_scale_pct": 100.0 * est[1], "wheel_scale_std_pct": 100.0 * std[1],
-                "model_omega_bias_dps": math.degrees(est[2]), "standstill_updates": self.n_standstill_updates}
+                "model_omega_bias_dps": math.degrees(est[2]), "standstill_updates": self.n_standstill_updates,
+                "yaw_rate_resolution_dps": math.degrees(self.yaw_resolution_radps)}
         return out

@@ -62,17 +62,27 @@ class LocalizerConfig:
     gnss_gate_sigma: float = 4.0
     # Self-calibration (runtime/filter.py): calibration states, raw cues, standstill updates.
     calibration: bool = True
-    # CAN yaw-rate cue noise: quantisation (ReV-StED 1.28 deg/s -> 0.37 deg/s rms) and slow quantisation
-    # error over the 50 Hz steps, which are correlated: inflated to 0.8 deg/s.
-    yaw_cue_std_radps: float = 0.8 * schema.DEG_TO_RAD
+    # CAN yaw-rate cue noise: white noise plus yaw_cue_quant_gain times the signal's resolution, measured
+    # online (the 10th percentile of the steps between successive distinct readings; until measured,
+    # yaw_cue_resolution_radps). Quantisation error is not white: it stays while the yaw rate stays in one
+    # step, so a coarse sensor (ReV-StED: 1.28 deg/s) is down-weighted far more than step / sqrt(12).
+    # The gain was chosen on the validation split (README, "Self-calibration").
+    yaw_cue_std_radps: float = 0.1 * schema.DEG_TO_RAD
+    yaw_cue_quant_gain: float = 12.0
+    yaw_cue_resolution_radps: float = 1.28 * schema.DEG_TO_RAD
     wheel_cue_std_mps: float = 0.05  # rear-axle mean speed: 0.05 km/h quantisation, slip, v_y and lever arms
     cue_min_speed_mps: float = 1.0  # below this the ABS sensors read 0: no wheel-speed cue
+    # wheel scale from GNSS: wheel distance over GNSS distance on baselines this long, above this speed
+    scale_baseline_s: float = 5.0
+    scale_min_speed_mps: float = 5.0
+    scale_meas_floor: float = 0.003  # slip and heading error per baseline
     standstill_hold_s: float = 0.5  # every wheel at 0 (and the speedometer) for this long: standstill
+    standstill_skips_model: bool = True  # parked: zero-velocity update instead of the model's z
     standstill_std_mps: float = 0.02
     standstill_yaw_std_radps: float = 0.001
     cal_yaw_offset_psd: float = 2.2e-11  # random walks of the calibration states (ekf.numpy_ekf.CalibrationNoise)
     cal_wheel_scale_psd: float = 1.7e-9
-    cal_model_bias_std_radps: float = 0.3 * schema.DEG_TO_RAD  # the model's omega_z error: Gauss-Markov
+    cal_model_bias_std_radps: float = 0.2 * schema.DEG_TO_RAD  # the model's omega_z error: Gauss-Markov
     cal_model_bias_tau_s: float = 5.0
 
     def __post_init__(self) -> None:
@@ -258,13 +268,14 @@ class StreamingLocalizer:
         res = self.filter.step(values, valid, t_s, est, fix)
         if self.latency is not None:
             self.latency.add("filter", time.perf_counter_ns() - t_filter)
-        out = self._output(t_s, res.ekf_status, est, res.model_used, res.gnss_fused, valid, all_valid)
+        out = self._output(t_s, res.ekf_status, est, res.model_used, res.gnss_fused, valid, all_valid,
+                           res.standstill)
         out.bus_silent = bus_silent
         out.cues_used, out.standstill = res.cues_used, res.standstill
         return out
 
     def _output(self, t_s: float, ekf_status: StepStatus | None, est: Estimate, model_used: bool,
-                gnss_fused: bool, valid: np.ndarray, all_valid: bool) -> StepOutput:
+                gnss_fused: bool, valid: np.ndarray, all_valid: bool, standstill: bool = False) -> StepOutput:
         flt = self.filter
         ekf = flt.ekf
         pos_cov = cal = None
@@ -286,8 +297,8 @@ class StreamingLocalizer:
                 status = PoseStatus.DEGRADED
             elif gnss_recent:
                 status = PoseStatus.GNSS_AIDED
-            elif not model_used and ekf_status is not None:
-                status = PoseStatus.PREDICT_ONLY
+            elif not model_used and not standstill and ekf_status is not None:
+                status = PoseStatus.PREDICT_ONLY  # (parked, the zero-velocity update is the measurement)
             else:
                 status = PoseStatus.DEAD_RECKONING
         self.status_counts[status] += 1

@@ -53,6 +53,7 @@ class MemorySink:
         self.gnss_outage: list[bool] = []
         self.pos_cov: list[np.ndarray] = []
         self.cal: list[np.ndarray] = []
+        self.standstill: list[bool] = []
 
     def step(self, out: StepOutput) -> None:
         self.t_s.append(out.t_s)
@@ -63,16 +64,19 @@ class MemorySink:
         self.gnss_outage.append(out.gnss_outage)
         self.pos_cov.append(out.pos_cov if out.pos_cov is not None else _NAN_COV)
         self.cal.append(out.cal if out.cal is not None else _NAN_CAL)
+        self.standstill.append(out.standstill)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Per step: ``t_s``, ``x`` (N, 8), ``pos_std_m``, ``status``, ``model_used``, ``gnss_outage`` (N,),
-        ``pos_cov`` (N, 2, 2) and ``cal`` (N, 3) (NaN before the start / with calibration off)."""
+        ``pos_cov`` (N, 2, 2) and ``cal`` (N, 3) (NaN before the start / with calibration off), ``standstill``
+        (N,) (a zero-velocity update replaced the model)."""
         return {"t_s": np.asarray(self.t_s), "x": np.asarray(self.x).reshape(-1, EkfState.DIM),
                 "pos_std_m": np.asarray(self.pos_std_m), "status": np.asarray(self.status, dtype=np.int8),
                 "model_used": np.asarray(self.model_used, dtype=bool),
                 "gnss_outage": np.asarray(self.gnss_outage, dtype=bool),
                 "pos_cov": np.asarray(self.pos_cov).reshape(-1, 2, 2),
-                "cal": np.asarray(self.cal).reshape(-1, CalState.DIM)}
+                "cal": np.asarray(self.cal).reshape(-1, CalState.DIM),
+                "standstill": np.asarray(self.standstill, dtype=bool)}
 
     def close(self) -> None:
         pass

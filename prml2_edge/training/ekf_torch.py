@@ -253,10 +253,21 @@ def update_linear(x: Tensor, P: Tensor, h: Tensor, innovation: Tensor, meas_var:
 
 
 def update_model_calibrated(x: Tensor, P: Tensor, z: Tensor, z_var: Tensor) -> tuple[Tensor, Tensor]:
-    """The model's z (B, 5) in the calibrated layout (``omega_z`` carries the model bias); x (B, 11)."""
-    h = torch.as_tensor(numpy_ekf.model_measurement_matrix(), dtype=x.dtype, device=x.device)
-    innovation = z - x @ h.T
-    return update_linear(x, P, h.expand(x.shape[0], *h.shape), innovation, z_var)
+    """The model's z (B, 5) in the calibrated layout, as :func:`numpy_ekf.model_measurement`; x (B, 11)."""
+    b = x.shape[0]
+    idx = _z_index(x.device)
+    k_idx, by_idx, bm_idx = CalState.WHEEL_SCALE.start, CalState.YAW_RATE_OFFSET.start, CalState.MODEL_OMEGA_BIAS.start
+    vx_row, w_row = schema.Z.V_X, schema.Z.OMEGA_Z
+    h = torch.zeros(b, MEAS_DIM, FULL_DIM, dtype=x.dtype, device=x.device)
+    h[:, torch.arange(MEAS_DIM), idx] = 1.0
+    k = x[:, k_idx]
+    h[:, vx_row, _VX] = 1.0 + k
+    h[:, w_row, by_idx] = 1.0
+    h[:, w_row, bm_idx] = 1.0
+    hx = x.index_select(-1, idx).clone()
+    hx[:, vx_row] = (1.0 + k) * x[:, _VX]
+    hx[:, w_row] = x[:, _OMEGA] + x[:, by_idx] + x[:, bm_idx]
+    return update_linear(x, P, h, z - hx, z_var)
 
 
 def cue_measurement(x: Tensor, yaw_rate: Tensor, wheel_speed: Tensor) -> tuple[Tensor, Tensor]:
@@ -268,7 +279,6 @@ def cue_measurement(x: Tensor, yaw_rate: Tensor, wheel_speed: Tensor) -> tuple[T
     h[:, 0, _OMEGA] = 1.0
     h[:, 0, CalState.YAW_RATE_OFFSET.start] = 1.0
     h[:, 1, _VX] = 1.0 + k
-    h[:, 1, CalState.WHEEL_SCALE.start] = vx
     innovation = torch.stack([yaw_rate - (x[:, _OMEGA] + x[:, CalState.YAW_RATE_OFFSET.start]),
                               wheel_speed - (1.0 + k) * vx], dim=-1)
     return innovation, h

@@ -247,8 +247,9 @@ def test_float64_parity_with_numpy_calibrated_over_3000_steps() -> None:
             model_bias_decay=ekf.model_bias_decay)
     assert ekf.model_bias_decay < 1.0
     assert xs_t.shape == (1, n, schema.CalState.FULL_DIM)
-    assert np.abs(xs_t[0].numpy() - xs_np).max() <= 1e-9
-    assert np.abs(ps_t[0].numpy() - ps_np).max() <= 1e-9
-    # the calibration states really moved towards the injected errors
-    assert abs(xs_np[-1, schema.CalState.WHEEL_SCALE.start] - 0.01) < 0.005
+    # the position variance grows to ~1e3 m^2 here: 1e-9 relative to each entry's size
+    np.testing.assert_allclose(xs_t[0].numpy(), xs_np, rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(ps_t[0].numpy(), ps_np, rtol=1e-10, atol=1e-9)
+    # the calibration states really moved: the model's omega_z bias against the offset CAN yaw rate
+    assert abs(xs_np[:, schema.CalState.MODEL_OMEGA_BIAS.start]).max() > 1e-3
     assert np.linalg.norm(xs_np[-1, EkfState.POS]) > 500.0

@@ -63,9 +63,13 @@ def test_step_by_step_equals_run_arrays(model_path, drive):
     outs = [loc.step(drive.onboard[i], valid, i * schema.DT_S) for i in range(n)]
     np.testing.assert_array_equal(np.array([o.x for o in outs]), ref.x)
     status = [o.status for o in outs]
-    assert status[1:L - 1] == [PoseStatus.PREDICT_ONLY] * (L - 2)  # window filling: predict only
+    # window filling: predict only, except parked (the zero-velocity update is a measurement)
+    assert status[1:L - 1] == [PoseStatus.DEAD_RECKONING if o.standstill else PoseStatus.PREDICT_ONLY
+                               for o in outs[1:L - 1]]
+    assert any(o.standstill for o in outs[1:L - 1]) and not all(o.standstill for o in outs[1:L - 1])
     assert all(s is PoseStatus.DEAD_RECKONING for s in status[L:])
-    assert [o.model_used for o in outs].index(True) == L - 1
+    first_moving = next(i for i in range(L - 1, n) if not outs[i].standstill)
+    assert [o.model_used for o in outs].index(True) == first_moving
 
 
 def test_stride_uses_older_windows_between_inferences(model_path, drive):
