@@ -21,6 +21,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from prml2_edge import schema
+from prml2_edge.dead_reckoning import DeadReckoningErrors, path_length_m
 from prml2_edge.ekf.numpy_ekf import default_process_noise, mahalanobis2, wrap_angle
 from prml2_edge.evaluation.osd import StandstillBias, drive_bias
 from prml2_edge.guard import physics_guard
@@ -89,11 +90,11 @@ class WindowTask:
     @property
     def distance_m(self) -> float:
         """Distance travelled over the window [m] (ground truth)."""
-        return float(np.sum(np.hypot(*np.diff(self.pose_gt[:, :2], axis=0).T)))
+        return path_length_m(self.pose_gt)
 
 
 @dataclass
-class WindowResult:
+class WindowResult(DeadReckoningErrors):
     """One model on one window: estimated pose (n, 3), errors (n,), consumed model z (n, 5) (NaN where none)."""
 
     model: str
@@ -108,19 +109,6 @@ class WindowResult:
     model_steps: int = 0
     mahal2: np.ndarray | None = None  # (n,) squared Mahalanobis distance of the 2D position error
     cal: np.ndarray | None = None  # (3,) calibration states at the outage start (NaN when off)
-
-    @property
-    def rmse_m(self) -> float:
-        return float(np.sqrt(np.mean(self.pos_error_m**2)))
-
-    @property
-    def max_error_m(self) -> float:
-        return float(np.max(self.pos_error_m))
-
-    @property
-    def drift_pct(self) -> float:
-        """Final position error over the distance travelled [%] (NaN below 1 m travelled)."""
-        return float(100.0 * self.pos_error_m[-1] / self.distance_m) if self.distance_m > 1.0 else math.nan
 
 
 def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: int = schema.WINDOW_LEN,

@@ -81,6 +81,42 @@ def evaluate(data: str | Path, specs: Sequence[ModelSpec], out_dir: str | Path, 
     t0 = time.monotonic()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    target = _ablation_target(specs, ablation)
+    dataset = load_dataset(data)
+    sets = _task_sets(dataset, data, window_s, max_windows, snow, preroll_s)
+    bar = Progress(_n_runs(specs, target, sets, calibration), desc="evaluate", unit="win", enabled=progress)
+
+    def tick(res: WindowResult) -> None:
+        bar.update(1)
+        bar.set_postfix(f"{res.model} {res.task_key}")
+
+    tuning = Tuning()
+    tuned = [tune_osd(s, sets["val"], stride, jobs, tuning=tuning, on_done=tick) if s.kind == "osd" else s
+             for s in specs]
+    tuned = calibration_variants(tuned, calibration)
+    results = {split: run_all(tuned, tasks, stride, jobs, tick) if tasks else {s.name: [] for s in tuned}
+               for split, tasks in sets.items() if split != "val"}
+    abl_rows = _ablation(target, sets, results["test"], stride, jobs, tuning, tick) if target else []
+    bar.close()
+
+    metrics = _metrics(data, dataset, stride, window_s, tuning, tuned, sets, results, preroll_s)
+    if abl_rows:
+        metrics["ablation"] = {"model": target.name, "rows": abl_rows}
+    if target is not None and len(tuned) > 1:  # is the reference better than each other model beyond the spread?
+        metrics["paired"] = _paired(target, tuned, results)
+    metrics["figures"] = _figures(out, sets, results) if plots else []
+    if tum:
+        _write_tum(out, sets, results)
+        metrics["tum_dir"] = "tum/"
+    metrics["wall_s"] = round(time.monotonic() - t0, 1)
+    from prml2_edge.evaluation.report import write_report
+
+    write_report(out, metrics)
+    return metrics
+
+
+def _ablation_target(specs: Sequence[ModelSpec], ablation: str | None) -> ModelSpec | None:
+    """The model of Table 3 (default: the one named PRML2); unique names checked."""
     names = [s.name for s in specs]
     if len(set(names)) != len(names):
         raise ValueError(f"model names must be unique, got {names}")
@@ -89,103 +125,109 @@ def evaluate(data: str | Path, specs: Sequence[ModelSpec], out_dir: str | Path, 
     target = next((s for s in specs if s.name == ablation), None) if ablation else None
     if ablation and (target is None or target.kind != "onnx"):
         raise ValueError(f"--ablation {ablation!r} must name one of the ONNX models {names}")
+    return target
 
-    dataset = load_dataset(data)
-    val = split_tasks(dataset, "val", window_s, max_windows=max_windows)
-    test = split_tasks(dataset, "test", window_s, max_windows=max_windows)
-    snow_tasks = split_tasks(dataset, "snow", window_s, max_windows=max_windows) if snow else []
-    if not val:
+
+def _task_sets(dataset, data, window_s: float, max_windows: int | None, snow: bool,
+               preroll_s: float) -> dict[str, list[WindowTask]]:
+    """``val``, ``test``, ``snow`` and ``deployment`` (test windows after a GNSS pre-roll) windows."""
+    sets = {"val": split_tasks(dataset, "val", window_s, max_windows=max_windows),
+            "test": split_tasks(dataset, "test", window_s, max_windows=max_windows)}
+    if not sets["val"]:
         raise ValueError(f"{data}: no {window_s:g} s validation windows to tune the noise on")
-    if not test:
+    if not sets["test"]:
         raise ValueError(f"{data}: no {window_s:g} s test windows (need dry drives with ground truth)")
-    deployment = split_tasks(dataset, "test", window_s, max_windows=max_windows, preroll_s=preroll_s) \
+    sets["snow"] = split_tasks(dataset, "snow", window_s, max_windows=max_windows) if snow else []
+    sets["deployment"] = split_tasks(dataset, "test", window_s, max_windows=max_windows, preroll_s=preroll_s) \
         if preroll_s > 0 else []
+    return sets
+
+
+def _n_runs(specs: Sequence[ModelSpec], target: ModelSpec | None, sets: dict, calibration: str) -> int:
+    """Window runs of the whole evaluation (the progress bar's total)."""
+    n_val = len(sets["val"])
     n_osd = sum(s.kind == "osd" for s in specs)
     n_var = len(specs) * (2 if calibration == "both" else 1)
-    total = (len(val) * (1 + len(OSD_Q_SCALES)) * n_osd + (len(val) if target else 0)
-             + n_var * (len(test) + len(snow_tasks) + len(deployment)) + (2 * len(test) if target else 0))
-    bar = Progress(total, desc="evaluate", unit="win", enabled=progress)
+    return (n_val * (1 + len(OSD_Q_SCALES)) * n_osd + (n_val if target else 0)
+            + n_var * (len(sets["test"]) + len(sets["snow"]) + len(sets["deployment"]))
+            + (2 * len(sets["test"]) if target else 0))
 
-    def tick(res: WindowResult) -> None:
-        bar.update(1)
-        bar.set_postfix(f"{res.model} {res.task_key}")
 
-    tuning = Tuning()
-    tuned = [tune_osd(s, val, stride, jobs, tuning=tuning, on_done=tick) if s.kind == "osd" else s for s in specs]
-    tuned = calibration_variants(tuned, calibration)
-    const_var = tune_constant_variance(target, val, stride, jobs, tuning, on_done=tick) if target else None
+def _ablation(target: ModelSpec, sets: dict, test_res: dict, stride: int, jobs: int, tuning: Tuning,
+              tick) -> list[dict]:
+    """Table 3: the target without the guard, and without guard and learned uncertainty, on test."""
+    const_var = tune_constant_variance(target, sets["val"], stride, jobs, tuning, on_done=tick)
+    variants = [replace(target, name=f"{target.name} (no guard, no uncertainty)", guard=False, const_var=const_var),
+                replace(target, name=f"{target.name} (no guard)", guard=False)]
+    abl_res = run_all(variants, sets["test"], stride, jobs, tick)
+    rows = [{"guard": g, "uncertainty": u, "name": spec.name, "dead_reckoning_60s": dr_summary(abl_res[spec.name])}
+            for spec, (g, u) in zip(variants, ((False, False), (False, True)), strict=True)]
+    rows.append({"guard": True, "uncertainty": True, "name": target.name,
+                 "dead_reckoning_60s": dr_summary(test_res[target.name])})
+    return rows
 
-    test_res = run_all(tuned, test, stride, jobs, tick)
-    snow_res = run_all(tuned, snow_tasks, stride, jobs, tick) if snow_tasks else {s.name: [] for s in tuned}
-    dep_res = run_all(tuned, deployment, stride, jobs, tick) if deployment else {}
-    abl_rows = []
-    if target is not None:
-        variants = [replace(target, name=f"{target.name} (no guard, no uncertainty)", guard=False,
-                            const_var=const_var),
-                    replace(target, name=f"{target.name} (no guard)", guard=False)]
-        abl_res = run_all(variants, test, stride, jobs, tick)
-        for spec, (g, u) in zip(variants, ((False, False), (False, True)), strict=True):
-            abl_rows.append({"guard": g, "uncertainty": u, "name": spec.name,
-                             "dead_reckoning_60s": dr_summary(abl_res[spec.name])})
-        abl_rows.append({"guard": True, "uncertainty": True, "name": target.name,
-                         "dead_reckoning_60s": dr_summary(test_res[target.name])})
-    bar.close()
 
-    test_sum = _summaries(test_res, test)
-    snow_sum = _summaries(snow_res, snow_tasks) if snow_tasks else {}
+def _metrics(data, dataset, stride: int, window_s: float, tuning: Tuning, tuned: Sequence[ModelSpec], sets: dict,
+             results: dict, preroll_s: float) -> dict:
+    """The per-model tables of ``metrics.json`` (test, snow, deployment)."""
+    test_sum = _summaries(results["test"], sets["test"])
+    snow_sum = _summaries(results["snow"], sets["snow"]) if sets["snow"] else {}
     metrics: dict = {
         "data": str(data), "dataset_fingerprint": dataset.fingerprint, "stride": stride,
         "window_s": window_s, "models": {}, "tuning": tuning.notes,
         "specs": {s.name: {"kind": s.kind, "path": s.path, "q_scale": s.q_scale, "calibration": s.calibration,
                            "const_var": list(s.const_var) if s.const_var else None} for s in tuned},
-        "deployment_preroll_s": preroll_s if deployment else None,
+        "deployment_preroll_s": preroll_s if sets["deployment"] else None,
     }
     for s in tuned:
         metrics["models"][s.name] = {"test": test_sum[s.name]}
-        if snow_tasks:
+        if sets["snow"]:
             metrics["models"][s.name]["snow"] = snow_sum[s.name]
-        if deployment:
-            metrics["models"][s.name]["deployment"] = {"dead_reckoning_60s": dr_summary(dep_res[s.name]),
-                                                       **calibration_summary(dep_res[s.name])}
-    if abl_rows:
-        metrics["ablation"] = {"model": target.name, "rows": abl_rows}
-    if target is not None and len(tuned) > 1:  # is the reference better than each other model beyond the spread?
-        paired: dict = {"reference": target.name}
-        for split, res in (("test", test_res), ("snow", snow_res), ("deployment", dep_res)):
-            if res.get(target.name):
-                paired[split] = {s.name: paired_comparison(res[target.name], res[s.name])
-                                 for s in tuned if s.name != target.name and res.get(s.name)}
-        metrics["paired"] = paired
-
-    figures = []
-    if plots:
-        from prml2_edge.evaluation.plots import plot_drift, plot_error_histograms, plot_trajectories
-
-        examples = test[:: max(1, len(test) // 3)][:3] + snow_tasks[:1]
-        figures.append(plot_trajectories(out / "trajectories.png", examples,
-                                         {k: v + snow_res.get(k, []) for k, v in test_res.items()}).name)
-        figures.append(plot_drift(out / "drift_dry.png", test_res, "dry test").name)
-        if snow_tasks:
-            figures.append(plot_drift(out / "drift_snow.png", snow_res, "snow").name)
-        figures.append(plot_error_histograms(out / "z_error_histograms.png", test_res, test).name)
-    metrics["figures"] = figures
-    if tum:
-        from prml2_edge.evaluation.tum import write_tum
-
-        for tasks, results in ((test, test_res), (snow_tasks, snow_res)):
-            by_key = {t.key: t for t in tasks}
-            for t in tasks:
-                write_tum(out / "tum" / "groundtruth" / _tum_name(t), t.t_s, t.pose_gt)
-            for name, res in results.items():
-                for r in res:
-                    write_tum(out / "tum" / _safe(name) / _tum_name(by_key[r.task_key]), by_key[r.task_key].t_s,
-                              r.pose)
-        metrics["tum_dir"] = "tum/"
-    metrics["wall_s"] = round(time.monotonic() - t0, 1)
-    from prml2_edge.evaluation.report import write_report
-
-    write_report(out, metrics)
+        if sets["deployment"]:
+            dep = results["deployment"][s.name]
+            metrics["models"][s.name]["deployment"] = {"dead_reckoning_60s": dr_summary(dep),
+                                                       **calibration_summary(dep)}
     return metrics
+
+
+def _paired(target: ModelSpec, tuned: Sequence[ModelSpec], results: dict) -> dict:
+    """Table 2b: the reference against every other model, window by window, per split."""
+    paired: dict = {"reference": target.name}
+    for split in ("test", "snow", "deployment"):
+        res = results[split]
+        if res.get(target.name):
+            paired[split] = {s.name: paired_comparison(res[target.name], res[s.name])
+                             for s in tuned if s.name != target.name and res.get(s.name)}
+    return paired
+
+
+def _figures(out: Path, sets: dict, results: dict) -> list[str]:
+    from prml2_edge.evaluation.plots import plot_drift, plot_error_histograms, plot_trajectories
+
+    test, snow_tasks = sets["test"], sets["snow"]
+    test_res, snow_res = results["test"], results["snow"]
+    examples = test[:: max(1, len(test) // 3)][:3] + snow_tasks[:1]
+    figures = [plot_trajectories(out / "trajectories.png", examples,
+                                 {k: v + snow_res.get(k, []) for k, v in test_res.items()}).name,
+               plot_drift(out / "drift_dry.png", test_res, "dry test").name]
+    if snow_tasks:
+        figures.append(plot_drift(out / "drift_snow.png", snow_res, "snow").name)
+    figures.append(plot_error_histograms(out / "z_error_histograms.png", test_res, test).name)
+    return figures
+
+
+def _write_tum(out: Path, sets: dict, results: dict) -> None:
+    from prml2_edge.evaluation.tum import write_tum
+
+    for split in ("test", "snow"):
+        tasks = sets[split]
+        by_key = {t.key: t for t in tasks}
+        for t in tasks:
+            write_tum(out / "tum" / "groundtruth" / _tum_name(t), t.t_s, t.pose_gt)
+        for name, res in results[split].items():
+            for r in res:
+                task = by_key[r.task_key]
+                write_tum(out / "tum" / _safe(name) / _tum_name(task), task.t_s, r.pose)
 
 
 CALIBRATION_CHOICES = ("off", "on", "both")

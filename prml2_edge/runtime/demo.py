@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from prml2_edge import schema
+from prml2_edge.dead_reckoning import trajectory_metrics
 from prml2_edge.runtime.pipeline import MemorySink, Pipeline, run_source
 from prml2_edge.runtime.sinks import JsonlSink
 from prml2_edge.runtime.source import LogReplay
@@ -36,33 +37,6 @@ class DemoResult:
     gnss_seconds: float
     metrics: dict = field(default_factory=dict)
     latency_lines: list[str] = field(default_factory=list)  # LatencyRecorder.report_lines()
-
-
-def trajectory_metrics(t_s: np.ndarray, est_xy: np.ndarray, gt_xy: np.ndarray, outage_start_s: float,
-                       horizon_s: float = 60.0) -> dict:
-    """Position error statistics over the GNSS outage.
-
-    Returns ``rmse_m``, ``max_m``, ``final_m`` over the whole outage, ``distance_m`` travelled in it,
-    ``drift_pct`` (final error / distance), and the same over the first ``horizon_s`` of the
-    outage (``*_60s``: the paper's 60 s dead-reckoning window).
-    """
-    err = np.hypot(est_xy[:, 0] - gt_xy[:, 0], est_xy[:, 1] - gt_xy[:, 1])
-    out = {}
-    for suffix, mask in (("", t_s >= outage_start_s),
-                         ("_60s", (t_s >= outage_start_s) & (t_s <= outage_start_s + horizon_s + 1e-9))):
-        e = err[mask]
-        if e.size < 2:
-            continue
-        dist = float(np.sum(np.hypot(*np.diff(gt_xy[mask], axis=0).T)))
-        out[f"rmse_m{suffix}"] = float(np.sqrt(np.mean(e ** 2)))
-        out[f"max_m{suffix}"] = float(np.max(e))
-        out[f"final_m{suffix}"] = float(e[-1])
-        out[f"distance_m{suffix}"] = dist
-        out[f"drift_pct{suffix}"] = 100.0 * float(e[-1]) / dist if dist > 1.0 else float("nan")
-        out[f"duration_s{suffix}"] = float(t_s[mask][-1] - t_s[mask][0])
-    out["rmse_m_gnss"] = float(np.sqrt(np.mean(err[t_s < outage_start_s] ** 2))) if np.any(t_s < outage_start_s) \
-        else float("nan")
-    return out
 
 
 def compare_with_truth(arrays: dict[str, np.ndarray], drive, outage_start_s: float | None = None) -> dict:

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from prml2_edge import schema
+from prml2_edge.dead_reckoning import DeadReckoningErrors, path_length_m
 from prml2_edge.ekf.numpy_ekf import Ekf, default_initial_covariance, default_process_noise
 from prml2_edge.evaluation.osd import drive_bias, osd_baseline_z
 from prml2_edge.guard import physics_guard
@@ -101,25 +102,13 @@ def guarded(stream: StreamOutput, mu: float) -> tuple[StreamOutput, np.ndarray]:
 
 
 @dataclass
-class DrWindow:
+class DrWindow(DeadReckoningErrors):
     """One dead-reckoning window: per-step position error [m] and distance travelled [m]."""
 
     drive: str
     start: int
-    errors_m: np.ndarray
+    pos_error_m: np.ndarray
     distance_m: float
-
-    @property
-    def rmse_m(self) -> float:
-        return float(np.sqrt(np.mean(self.errors_m**2)))
-
-    @property
-    def max_error_m(self) -> float:
-        return float(np.max(self.errors_m))
-
-    @property
-    def final_drift_pct(self) -> float:
-        return float(100.0 * self.errors_m[-1] / self.distance_m) if self.distance_m > 1.0 else float("nan")
 
 
 def dead_reckon(z_mean: np.ndarray, z_var: np.ndarray, z_gt: np.ndarray, pose_gt: np.ndarray, start: int,
@@ -166,7 +155,7 @@ class SplitReport:
             return {"n_windows": 0}
         rmse = np.array([w.rmse_m for w in self.dr_windows])
         me = np.array([w.max_error_m for w in self.dr_windows])
-        drift = np.array([w.final_drift_pct for w in self.dr_windows])
+        drift = np.array([w.drift_pct for w in self.dr_windows])
         return {"n_windows": len(self.dr_windows), "rmse_mean_m": float(rmse.mean()), "rmse_std_m": float(rmse.std()),
                 "me_mean_m": float(me.mean()), "me_std_m": float(me.std()),
                 "drift_mean_pct": float(np.nanmean(drift)) if np.isfinite(drift).any() else float("nan")}
@@ -267,8 +256,7 @@ def evaluate_segments(model: Prml2Model, segments: list[Segment], *, stride: int
             first = int(np.argmax(valid))
             for start in dr_starts(len(valid), first, window_steps):
                 errors = dead_reckon(stream.mean, stream.var, z_gt, pose_gt, start, window_steps)
-                xy = pose_gt[start : start + window_steps, :2]
-                distance = float(np.sum(np.hypot(*np.diff(xy, axis=0).T)))
+                distance = path_length_m(pose_gt[start : start + window_steps])
                 report.dr_windows.append(DrWindow(drive.name, ctx + start, errors, distance))
     bar.close()
     report.z_rmse = _rmse(sq, cnt)
