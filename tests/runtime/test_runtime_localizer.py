@@ -168,3 +168,49 @@ def test_gnss_waits_for_the_wheels(model_path, drive):
     x, y, psi = drive.pose_gt[0]
     out = loc.step(drive.onboard[0], none_valid, 0.0, GnssFix(0.0, float(x), float(y), 0.0, True))
     assert out.status is PoseStatus.INITIALISING and loc.ekf is None
+
+
+def _gnss_fixes(drive, until_s: float, pos_noise_m: float = 0.0, seed: int = 0) -> dict[int, GnssFix]:
+    rng = np.random.default_rng(seed)
+    fixes = {}
+    for i in range(5, int(until_s / schema.DT_S), 5):  # 10 Hz
+        x, y, psi = drive.pose_gt[i]
+        n = rng.normal(0.0, pos_noise_m, 2) if pos_noise_m else (0.0, 0.0)
+        heading = psi_rad_to_heading_deg(float(psi)) if drive.z_gt[i, schema.Z.V_X] > 2.0 else None
+        fixes[i] = GnssFix(i * schema.DT_S, float(x + n[0]), float(y + n[1]), heading, True)
+    return fixes
+
+
+def test_gnss_teaches_the_wheel_scale_and_it_carries_the_outage(model_path):
+    """Wheels 1 % fast on a drive: 40 s of GNSS learn the scale from wheel against GNSS distance; without
+    calibration the same model and log drift further once GNSS stops."""
+    drive = simulate_drive(1.5, 1.0, 21, sensor_errors={"wheel_radius_error": 0.01, "yaw_offset_radps": 0.0})
+    x0 = gt_state(drive, 0)
+    fixes = _gnss_fixes(drive, 40.0, pos_noise_m=0.5)
+    cfg = LocalizerConfig(gnss_pos_std_m=0.5)
+    on = StreamingLocalizer(OnnxModel(model_path), cfg).run_arrays(drive.onboard, x0, gnss=fixes)
+    off = StreamingLocalizer(OnnxModel(model_path), LocalizerConfig(gnss_pos_std_m=0.5, calibration=False)
+                             ).run_arrays(drive.onboard, x0, gnss=fixes)
+    k_out = int(40.0 / schema.DT_S)
+    scale = on.cal[k_out, schema.CalState.WHEEL_SCALE.start - EkfState.DIM]
+    assert 0.006 < scale < 0.012  # the rear wheels' effective error: 1 % less their slip
+    assert np.isnan(off.cal).all()
+
+    def final_error(tr):
+        return float(np.hypot(*(tr.x[-1, :2] - drive.pose_gt[-1, :2])))
+
+    assert final_error(on) < final_error(off)
+
+
+def test_standstill_holds_the_pose_and_reveals_the_offset_of_a_fine_yaw_sensor(model_path):
+    """Parked with a yaw-rate sensor of fine resolution reading a 0.3 deg/s offset: the zero-velocity update
+    keeps the pose still and the offset is learned without GNSS."""
+    n = 600
+    onboard = np.zeros((n, schema.NUM_SIGNALS))
+    rng = np.random.default_rng(4)
+    yaw = np.radians(0.3) + rng.normal(0.0, np.radians(0.05), n)
+    onboard[:, schema.SIGNAL_BY_NAME["yaw_rate_radps"].index] = np.round(yaw / 1e-4) * 1e-4  # 0.006 deg/s steps
+    traj = StreamingLocalizer(OnnxModel(model_path)).run_arrays(onboard, np.zeros(EkfState.DIM))
+    assert np.hypot(*traj.x[-1, :2]) < 0.01 and abs(traj.x[-1, EkfState.YAW.start]) < np.radians(0.05)
+    offset = np.degrees(traj.cal[-1, 0])
+    assert abs(offset - 0.3) < 0.05
