@@ -49,6 +49,15 @@ def run(args: argparse.Namespace) -> int:
                   f"max {m['max_m' + suffix]:.2f} m, final {m['final_m' + suffix]:.2f} m "
                   f"over {m['distance_m' + suffix]:.0f} m (drift {m['drift_pct' + suffix]:.2f} %)")
     print("  paper, ReV-StED 60 s windows: PRML2 1.5 +- 1.2 m RMSE, 2.8 +- 2.2 m max; 1.07 % drift")
+    if "coverage_2sigma_pct" in m:
+        print(f"  uncertainty: errors inside the reported 1σ/2σ/3σ ellipses on {m['coverage_1sigma_pct']:.0f} / "
+              f"{m['coverage_2sigma_pct']:.0f} / {m['coverage_3sigma_pct']:.0f} % of the outage's steps "
+              "(consistent: 39 / 86 / 99)")
+    cal = m.get("calibration_at_outage")
+    if cal:
+        print(f"  calibration learned while GNSS lasted: CAN yaw-rate offset {cal['yaw_rate_offset_dps']:+.3f} °/s, "
+              f"wheel scale {cal['wheel_scale_pct']:+.2f} % (the drive's true yaw offset "
+              f"{result.summary.get('true_yaw_offset_dps', float('nan')):+.3f} °/s)")
     print("latency per stage (this machine):")
     for line in result.latency_lines:
         print("  " + line)

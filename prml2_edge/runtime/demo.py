@@ -10,6 +10,7 @@ dead-reckons, the GNSS-outage case of the paper. Needs only the runtime's depend
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -46,8 +47,6 @@ def compare_with_truth(arrays: dict[str, np.ndarray], drive, outage_start_s: flo
     (the drive's start when no fix was ever fused). Returns :func:`trajectory_metrics`, the coverage of
     the reported 1/2/3-sigma ellipses over the outage, and the calibration states at the outage start.
     """
-    import math
-
     from prml2_edge.ekf.numpy_ekf import coverage_pct, mahalanobis2
 
     t_s = arrays["t_s"]
@@ -125,6 +124,7 @@ def run_demo(out_dir: str | Path, model: str | Path | None = None, seconds: floa
         plot_path = plot_trajectory(out_dir / "trajectory.png", estimate[ok, :2], truth[ok, :2],
                                     t_s[ok] < drive.t_s[0] + gnss_seconds, metrics)
     summary = pipeline.summary()
+    summary["true_yaw_offset_dps"] = math.degrees(drive.meta["sensor_errors"]["yaw_offset_radps"])
     return DemoResult(log_path, jsonl_path, plot_path, summary, t_s, estimate, truth, gnss_seconds, metrics,
                       pipeline.latency.report_lines())
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from prml2_edge import schema
-from prml2_edge.ekf.numpy_ekf import StepStatus, default_process_noise, wrap_angle
+from prml2_edge.ekf.numpy_ekf import CalibrationNoise, StepStatus, default_process_noise, wrap_angle
 from prml2_edge.runtime.estimator import Estimate, Estimator, Model
 from prml2_edge.runtime.filter import PoseFilter
 from prml2_edge.runtime.initial_pose import InitialPose
@@ -80,10 +80,11 @@ class LocalizerConfig:
     standstill_skips_model: bool = True  # parked: zero-velocity update instead of the model's z
     standstill_std_mps: float = 0.02
     standstill_yaw_std_radps: float = 0.001
-    cal_yaw_offset_psd: float = 2.2e-11  # random walks of the calibration states (ekf.numpy_ekf.CalibrationNoise)
-    cal_wheel_scale_psd: float = 1.7e-9
-    cal_model_bias_std_radps: float = 0.2 * schema.DEG_TO_RAD  # the model's omega_z error: Gauss-Markov
-    cal_model_bias_tau_s: float = 5.0
+    # the calibration states' process noise (ekf.numpy_ekf.CalibrationNoise documents the values)
+    cal_yaw_offset_psd: float = CalibrationNoise.yaw_offset_psd_rad2ps3
+    cal_wheel_scale_psd: float = CalibrationNoise.wheel_scale_psd_ps
+    cal_model_bias_std_radps: float = CalibrationNoise.model_bias_std_radps  # the model's omega_z error: Gauss-Markov
+    cal_model_bias_tau_s: float = CalibrationNoise.model_bias_tau_s
 
     def __post_init__(self) -> None:
         if self.stride < 1:
