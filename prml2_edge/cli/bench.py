@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 HELP = "Measure per-step latency of the runtime on this machine (quick benchmark)."
 NEEDS: tuple[tuple[str, str], ...] = ()
@@ -63,19 +64,13 @@ def _label(model) -> str:
     return preset if preset and preset != "unknown" else model.path.stem
 
 
-def run(args: argparse.Namespace) -> int:
-    import tempfile
-    from pathlib import Path
-
+def _plan(args: argparse.Namespace) -> tuple[list[Path], list[int], list[str], list[str]]:
+    """Check the arguments and settle what to measure: (model paths, thread counts, precisions, notes)."""
     from prml2_edge import schema
-    from prml2_edge.bench.flops import gemm_shapes, inference_flops
-    from prml2_edge.bench.latency import build_pipeline, measure_steps, open_session_model
-    from prml2_edge.bench.machine import gemm_rate, load_average, machine_info, usable_cores
-    from prml2_edge.bench.replay_input import simulated_frames
+    from prml2_edge.bench.machine import usable_cores
     from prml2_edge.errors import ConfigError
     from prml2_edge.runtime.inference import default_model_path
-    from prml2_edge.runtime.latency import DEADLINE_MS, PAPER_INFER_MS
-    from prml2_edge.training.quantize import int8_available, quantize_prml2
+    from prml2_edge.training.quantize import int8_available
 
     if args.seconds * schema.SAMPLE_RATE_HZ <= schema.WINDOW_LEN + args.warmup_steps:
         raise ConfigError(f"--seconds {args.seconds:g} is too short: the first {schema.WINDOW_LEN} steps fill the "
@@ -93,7 +88,78 @@ def run(args: argparse.Namespace) -> int:
                      "or pass an int8 model with --model")
     if not precisions:
         raise ConfigError("nothing to measure: int8 needs the onnx package and fp32 was not asked for")
+    return model_paths, threads, precisions, notes
 
+
+def _variants(path: Path, precisions: list[str], tmp: Path) -> list[tuple[str, Path]]:
+    """(precision, model path) for each precision of one model; int8 graphs are quantised into ``tmp``."""
+    from prml2_edge.training.quantize import quantize_prml2
+
+    variants = []
+    for precision in precisions:
+        if precision == "fp32":
+            variants.append(("fp32", path))
+        else:
+            variants.append(("int8", quantize_prml2(path, tmp / f"{path.stem}_int8.onnx")))
+    return variants
+
+
+def _measure(args: argparse.Namespace, path: Path, precision: str, variant_path: Path, n_threads: int,
+             providers: list[str], replay, gemm: dict[int, dict]) -> dict:
+    """One config's record: the latency summary of the replayed drive, then its FLOP rate beside the GEMM
+    reference (measured once per thread count into ``gemm``)."""
+    from prml2_edge.bench.latency import build_pipeline, measure_steps, open_session_model
+    from prml2_edge.bench.machine import load_average
+    from prml2_edge.runtime.latency import DEADLINE_MS
+
+    model = open_session_model(variant_path, threads=n_threads, spinning=args.spinning, providers=providers)
+    label = _label(model)
+    cfg = dict(model.metadata.config)
+    pipeline = build_pipeline(model, replay.initial_pose)
+    load_before = load_average()
+    samples = measure_steps(pipeline, replay.frames, skip=args.warmup_steps)
+    record = {
+        "name": f"{label}-{precision}-{n_threads}t",
+        "model": str(path), "preset": model.metadata.preset, "precision": precision,
+        "threads": n_threads, "spinning": bool(args.spinning), "providers": model.providers,
+        "steps": len(samples.e2e_ms),
+        **samples.summary(),
+        "deadline_ms": DEADLINE_MS,
+        "deadline_misses": int(sum(v > DEADLINE_MS for v in samples.e2e_ms)),
+        "load_average": [load_before, load_average()],
+    }
+    _add_rates(record, cfg, model.metadata.output_rows, n_threads, gemm, no_gemm=args.no_gemm)
+    return record
+
+
+def _add_rates(record: dict, cfg: dict, output_rows, n_threads: int, gemm: dict[int, dict], no_gemm: bool) -> None:
+    """Add ``flops``, ``model_gflops_per_s`` and (unless ``no_gemm``) the GEMM reference to ``record``."""
+    from prml2_edge.bench.flops import gemm_shapes, inference_flops
+    from prml2_edge.bench.machine import gemm_rate
+
+    try:
+        flops = inference_flops(cfg, output_rows)["total"]
+    except ValueError:
+        flops = None
+    record["flops"] = flops
+    p50 = record["model_ms"].get("p50")
+    record["model_gflops_per_s"] = flops / (p50 * 1e6) if flops and p50 else None
+    if not no_gemm and flops:
+        if n_threads not in gemm:
+            gemm[n_threads] = gemm_rate(gemm_shapes(cfg), threads=n_threads)
+        ref = gemm[n_threads]["flop_weighted_gflops"]
+        record["gemm_gflops"] = ref
+        record["fraction_of_gemm"] = record["model_gflops_per_s"] / ref if ref else None
+
+
+def run(args: argparse.Namespace) -> int:
+    import tempfile
+
+    from prml2_edge.bench.machine import machine_info
+    from prml2_edge.bench.replay_input import simulated_frames
+    from prml2_edge.runtime.latency import PAPER_INFER_MS
+
+    model_paths, threads, precisions, notes = _plan(args)
     providers = [p.strip() for p in args.providers.split(",") if p.strip()]
     replay = simulated_frames(args.seconds, seed=args.seed)
     machine = machine_info()
@@ -101,45 +167,9 @@ def run(args: argparse.Namespace) -> int:
     configs = []
     with tempfile.TemporaryDirectory(prefix="prml2-bench-") as tmp:
         for path in model_paths:
-            variants = []
-            for precision in precisions:
-                if precision == "fp32":
-                    variants.append(("fp32", path))
-                else:
-                    variants.append(("int8", quantize_prml2(path, Path(tmp) / f"{path.stem}_int8.onnx")))
-            for precision, variant_path in variants:
+            for precision, variant_path in _variants(path, precisions, Path(tmp)):
                 for n_threads in threads:
-                    model = open_session_model(variant_path, threads=n_threads, spinning=args.spinning,
-                                               providers=providers)
-                    label = _label(model)
-                    cfg = dict(model.metadata.config)
-                    pipeline = build_pipeline(model, replay.initial_pose)
-                    load_before = load_average()
-                    samples = measure_steps(pipeline, replay.frames, skip=args.warmup_steps)
-                    record = {
-                        "name": f"{label}-{precision}-{n_threads}t",
-                        "model": str(path), "preset": model.metadata.preset, "precision": precision,
-                        "threads": n_threads, "spinning": bool(args.spinning), "providers": model.providers,
-                        "steps": len(samples.e2e_ms),
-                        **samples.summary(),
-                        "deadline_ms": DEADLINE_MS,
-                        "deadline_misses": int(sum(v > DEADLINE_MS for v in samples.e2e_ms)),
-                        "load_average": [load_before, load_average()],
-                    }
-                    try:
-                        flops = inference_flops(cfg, model.metadata.output_rows)["total"]
-                    except ValueError:
-                        flops = None
-                    record["flops"] = flops
-                    p50 = record["model_ms"].get("p50")
-                    record["model_gflops_per_s"] = flops / (p50 * 1e6) if flops and p50 else None
-                    if not args.no_gemm and flops:
-                        if n_threads not in gemm:
-                            gemm[n_threads] = gemm_rate(gemm_shapes(cfg), threads=n_threads)
-                        ref = gemm[n_threads]["flop_weighted_gflops"]
-                        record["gemm_gflops"] = ref
-                        record["fraction_of_gemm"] = record["model_gflops_per_s"] / ref if ref else None
-                    configs.append(record)
+                    configs.append(_measure(args, path, precision, variant_path, n_threads, providers, replay, gemm))
     doc = {
         "benchmark": "prml2 bench (quick)",
         "drive": {"seconds": args.seconds, "seed": args.seed, "frames": len(replay.frames)},

@@ -32,6 +32,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -230,6 +231,61 @@ def _insert_gaps(values: np.ndarray, gap_after: np.ndarray) -> np.ndarray:
     return np.insert(values, gap_after + 1, mids, axis=0)
 
 
+def _read_csv(path: Path) -> tuple[list[str], list[list[str]]]:
+    """The stripped header and the non-empty data rows of the CSV at ``path``."""
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            reader = csv.reader(f)
+            try:
+                header = [h.strip() for h in next(reader)]
+            except StopIteration:
+                raise DataError(f"{path}: file is empty; expected a CSV with a header row") from None
+            rows = [row for row in reader if row]
+    except FileNotFoundError:
+        raise DataError(f"{path}: file not found") from None
+    except UnicodeDecodeError as exc:
+        raise DataError(f"{path}: not a text CSV file ({exc.reason})") from exc
+    return header, rows
+
+
+def _ground_truth(
+    path: Path, col: dict[str, int], column: Callable[[str], np.ndarray], require_ground_truth: bool
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``(z_gt, pose_gt)`` from the ground-truth columns (each None when its group is absent); ``column``
+    reads one column as the loader does (parsed, non-finite runs held, gaps filled)."""
+    z_names = [c for c, _ in Z_COLUMNS]
+    z_gt = pose_gt = None
+    for group in (z_names, list(POSE_COLUMNS)):
+        present = [c for c in group if c in col]
+        if present and len(present) < len(group):
+            missing = [c for c in group if c not in col]
+            raise DataError(
+                f"{path}: has ground-truth column(s) {', '.join(present)} but lacks {', '.join(missing)}; "
+                "add them, or remove the partial ground truth to load the file onboard-only"
+            )
+    if all(c in col for c in z_names):
+        z_gt = np.stack([column(c) * scale for c, scale in Z_COLUMNS], axis=1)
+    if all(c in col for c in POSE_COLUMNS):
+        x_m, y_m, yaw_deg = (column(c) for c in POSE_COLUMNS)
+        psi_rad = np.unwrap(schema.heading_deg_to_psi(yaw_deg))
+        pose_gt = np.stack([x_m, y_m, psi_rad], axis=1)
+    if require_ground_truth and (z_gt is None or pose_gt is None):
+        need = ", ".join(z_names + list(POSE_COLUMNS))
+        raise DataError(f"{path}: ground truth required but the file lacks it (columns {need})")
+    return z_gt, pose_gt
+
+
+def _read_meta(path: Path) -> dict:
+    """The sidecar ``<stem>.meta.json`` of the CSV at ``path``, or {} when there is none."""
+    meta_path = path.with_name(path.stem + META_SUFFIX)
+    if not meta_path.is_file():
+        return {}
+    try:
+        return json.loads(meta_path.read_text())
+    except json.JSONDecodeError as exc:
+        raise DataError(f"{meta_path}: not valid JSON ({exc.msg} at line {exc.lineno})") from exc
+
+
 def load_drive(path: str | Path, *, require_ground_truth: bool = False) -> Drive:
     """Load a ReV-StED-schema CSV into a :class:`Drive` (SI units; see the module docstring).
 
@@ -247,18 +303,7 @@ def load_drive(path: str | Path, *, require_ground_truth: bool = False) -> Drive
         ``z_gt``/``pose_gt`` are None for an onboard-only file.
     """
     path = Path(path)
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as f:
-            reader = csv.reader(f)
-            try:
-                header = [h.strip() for h in next(reader)]
-            except StopIteration:
-                raise DataError(f"{path}: file is empty; expected a CSV with a header row") from None
-            rows = [row for row in reader if row]
-    except FileNotFoundError:
-        raise DataError(f"{path}: file not found") from None
-    except UnicodeDecodeError as exc:
-        raise DataError(f"{path}: not a text CSV file ({exc.reason})") from exc
+    header, rows = _read_csv(path)
     if TIME_COLUMN not in header:
         raise DataError(f"{path}: missing time column {TIME_COLUMN!r} (seconds); the first column of ReV-StED files")
     try:
@@ -282,33 +327,8 @@ def load_drive(path: str | Path, *, require_ground_truth: bool = False) -> Drive
     if has_gaps:
         t_s = _insert_gaps(t_s, gap_after)
 
-    z_names = [c for c, _ in Z_COLUMNS]
-    z_gt = pose_gt = None
-    for group in (z_names, list(POSE_COLUMNS)):
-        present = [c for c in group if c in col]
-        if present and len(present) < len(group):
-            missing = [c for c in group if c not in col]
-            raise DataError(
-                f"{path}: has ground-truth column(s) {', '.join(present)} but lacks {', '.join(missing)}; "
-                "add them, or remove the partial ground truth to load the file onboard-only"
-            )
-    if all(c in col for c in z_names):
-        z_gt = np.stack([column(c) * scale for c, scale in Z_COLUMNS], axis=1)
-    if all(c in col for c in POSE_COLUMNS):
-        x_m, y_m, yaw_deg = (column(c) for c in POSE_COLUMNS)
-        psi_rad = np.unwrap(schema.heading_deg_to_psi(yaw_deg))
-        pose_gt = np.stack([x_m, y_m, psi_rad], axis=1)
-    if require_ground_truth and (z_gt is None or pose_gt is None):
-        need = ", ".join(z_names + list(POSE_COLUMNS))
-        raise DataError(f"{path}: ground truth required but the file lacks it (columns {need})")
-
-    meta: dict = {}
-    meta_path = path.with_name(path.stem + META_SUFFIX)
-    if meta_path.is_file():
-        try:
-            meta = json.loads(meta_path.read_text())
-        except json.JSONDecodeError as exc:
-            raise DataError(f"{meta_path}: not valid JSON ({exc.msg} at line {exc.lineno})") from exc
+    z_gt, pose_gt = _ground_truth(path, col, column, require_ground_truth)
+    meta = _read_meta(path)
     return Drive(name=path.stem, path=path, t_s=t_s, onboard=onboard, z_gt=z_gt, pose_gt=pose_gt,
                  meta=meta, repairs=repairs)
 

@@ -90,15 +90,23 @@ class FeedForward(nn.Module):
         return self.fc2(self.dropout(F.gelu(self.fc1(x))))
 
 
+def _pre_norm_attention(cfg: ModelConfig) -> tuple[nn.LayerNorm, MultiHeadAttention]:
+    """A pre-norm attention sublayer: the LayerNorm before it and the attention (created in that order)."""
+    return nn.LayerNorm(cfg.d_model), MultiHeadAttention(cfg.d_model, cfg.n_heads, cfg.dropout)
+
+
+def _pre_norm_feed_forward(cfg: ModelConfig) -> tuple[nn.LayerNorm, FeedForward]:
+    """A pre-norm feed-forward sublayer: the LayerNorm before it and the feed-forward block."""
+    return nn.LayerNorm(cfg.d_model), FeedForward(cfg.d_model, cfg.d_ff, cfg.dropout)
+
+
 class EncoderLayer(nn.Module):
     """Pre-norm self-attention + feed-forward block."""
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
-        self.norm1 = nn.LayerNorm(cfg.d_model)
-        self.attn = MultiHeadAttention(cfg.d_model, cfg.n_heads, cfg.dropout)
-        self.norm2 = nn.LayerNorm(cfg.d_model)
-        self.ff = FeedForward(cfg.d_model, cfg.d_ff, cfg.dropout)
+        self.norm1, self.attn = _pre_norm_attention(cfg)
+        self.norm2, self.ff = _pre_norm_feed_forward(cfg)
         self.drop = nn.Dropout(cfg.dropout)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:  # (B, H, d)
@@ -112,12 +120,9 @@ class DecoderLayer(nn.Module):
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
-        self.norm1 = nn.LayerNorm(cfg.d_model)
-        self.self_attn = MultiHeadAttention(cfg.d_model, cfg.n_heads, cfg.dropout)
-        self.norm2 = nn.LayerNorm(cfg.d_model)
-        self.cross_attn = MultiHeadAttention(cfg.d_model, cfg.n_heads, cfg.dropout)
-        self.norm3 = nn.LayerNorm(cfg.d_model)
-        self.ff = FeedForward(cfg.d_model, cfg.d_ff, cfg.dropout)
+        self.norm1, self.self_attn = _pre_norm_attention(cfg)
+        self.norm2, self.cross_attn = _pre_norm_attention(cfg)
+        self.norm3, self.ff = _pre_norm_feed_forward(cfg)
         self.drop = nn.Dropout(cfg.dropout)
 
     def forward(self, x: torch.Tensor, memory: torch.Tensor, rows: int | None = None) -> torch.Tensor:
