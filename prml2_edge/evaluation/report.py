@@ -97,9 +97,10 @@ def _diff(d: dict) -> str:
 
 
 def _cov(d: dict) -> str:
+    """One cell: ``1σ / 2σ / 3σ`` coverage [%]."""
     if "coverage_1sigma_pct" not in d:
-        return " | | "
-    return " | ".join(f"{d[f'coverage_{k}sigma_pct']:.0f}" for k in (1, 2, 3))
+        return "–"
+    return " / ".join(f"{d[f'coverage_{k}sigma_pct']:.0f}" for k in (1, 2, 3))
 
 
 def _deployment_lines(metrics: dict) -> list[str]:
@@ -124,7 +125,7 @@ def _deployment_lines(metrics: dict) -> list[str]:
         scale = _f(cal.get("wheel_scale_pct_mean"), 2) if cal else ""
         dep_s = (f"{_pm(dd.get('rmse_mean_m'), dd.get('rmse_std_m'))} | "
                  f"{_pm(dd.get('drift_mean_pct'), dd.get('drift_std_pct'), 2)} | {_cov(dd)}"
-                 if dd.get("n_windows") else " | | | | ")
+                 if dd.get("n_windows") else "– | – | –")
         lines.append(f"| {name} | {_cov(d)} | {dep_s} | {off} | {scale} |")
     return lines + [""]
 

@@ -99,8 +99,8 @@ class PoseFilter:
                        cal_noise=CalibrationNoise(cfg.cal_yaw_offset_psd, cfg.cal_wheel_scale_psd,
                                                   cfg.cal_model_bias_std_radps, cfg.cal_model_bias_tau_s)
                        if self.calibrated else None,
-                       cal_std=CalibrationStd(model_bias_radps=cfg.cal_model_bias_std_radps)
-                       if self.calibrated else None)
+                       cal_std=CalibrationStd(cfg.cal_yaw_offset_prior_std_radps, cfg.cal_wheel_scale_prior_std,
+                                              cfg.cal_model_bias_std_radps) if self.calibrated else None)
         if self.calibrated and self.calibration0 is not None:
             self.ekf.set_calibration(*self.calibration0)
         self._last_abs_t = t_s

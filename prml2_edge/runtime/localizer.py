@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from prml2_edge import schema
-from prml2_edge.ekf.numpy_ekf import CalibrationNoise, StepStatus, default_process_noise, wrap_angle
+from prml2_edge.ekf.numpy_ekf import CalibrationNoise, CalibrationStd, StepStatus, default_process_noise, wrap_angle
 from prml2_edge.runtime.estimator import Estimate, Estimator, Model
 from prml2_edge.runtime.filter import PoseFilter
 from prml2_edge.runtime.initial_pose import InitialPose
@@ -80,7 +80,10 @@ class LocalizerConfig:
     standstill_skips_model: bool = True  # parked: zero-velocity update instead of the model's z
     standstill_std_mps: float = 0.02
     standstill_yaw_std_radps: float = 0.001
-    # the calibration states' process noise (ekf.numpy_ekf.CalibrationNoise documents the values)
+    # the calibration states' prior without a saved calibration, and their process noise
+    # (ekf.numpy_ekf.CalibrationStd / CalibrationNoise document the values)
+    cal_yaw_offset_prior_std_radps: float = CalibrationStd.yaw_offset_radps
+    cal_wheel_scale_prior_std: float = CalibrationStd.wheel_scale
     cal_yaw_offset_psd: float = CalibrationNoise.yaw_offset_psd_rad2ps3
     cal_wheel_scale_psd: float = CalibrationNoise.wheel_scale_psd_ps
     cal_model_bias_std_radps: float = CalibrationNoise.model_bias_std_radps  # the model's omega_z error: Gauss-Markov
