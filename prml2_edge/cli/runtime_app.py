@@ -131,9 +131,30 @@ def summary_lines(summary: dict) -> list[str]:
                      f"{last['status']}" + (f", {outage:.1f} s since the last fix" if outage else ""))
     elif last:
         lines.append(f"final status: {last['status']} (no pose: {PoseStatus.INITIALISING.name})")
+    lines += calibration_lines(summary.get("calibration") or {}, summary.get("gnss_init_rejected", 0))
     for name, s in summary.get("sinks", {}).items():
         if s.get("errors"):
             lines.append(f"WARNING {name}: {s['errors']} write errors ({s.get('last_error', '')})")
+    return lines
+
+
+def calibration_lines(cal: dict, init_rejected: int = 0) -> list[str]:
+    """The self-calibration part of the end-of-run summary."""
+    lines = []
+    if "yaw_rate_offset_dps" in cal:
+        lines.append(f"calibration: CAN yaw-rate offset {cal['yaw_rate_offset_dps']:+.3f} ± "
+                     f"{cal['yaw_rate_offset_std_dps']:.3f} °/s, wheel scale {cal['wheel_scale_pct']:+.2f} ± "
+                     f"{cal['wheel_scale_std_pct']:.2f} %, {cal['standstill_updates']} standstill updates, yaw-rate "
+                     f"resolution {cal['yaw_rate_resolution_dps']:.3g} °/s")
+    elif cal.get("enabled") is False:
+        lines.append("calibration: off (--no-calibration)")
+    if cal.get("file"):
+        state = "restored" if cal.get("restored") else "not restored (defaults)"
+        lines.append(f"calibration file {cal['file']}: {state}, saved {cal.get('saves', 0)} time(s)"
+                     + (f"; ERROR {cal['error']}" if cal.get("error") else ""))
+    if init_rejected:
+        lines.append(f"GNSS start-up: {init_rejected} first fix(es) contradicted by the next fix or the wheels, "
+                     "restarted from the newer one")
     return lines
 
 
