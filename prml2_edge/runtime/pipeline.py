@@ -245,6 +245,15 @@ class Pipeline:
                              + (f" outage {out.outage_s:.0f} s" if out.gnss_outage else ""))
         return " | ".join(parts)
 
+    def _localizer_summary(self, loc: StreamingLocalizer) -> dict:
+        """The estimator's and the filter's counters (their own ``summary()``), with the calibration file's."""
+        out = loc.summary()
+        cal = out.pop("calibration", None) or {"enabled": loc.config.calibration}
+        if self.calibration_file is not None:
+            cal = {**cal, **self.calibration_file.summary()}
+        out["calibration"] = cal
+        return out
+
     def summary(self) -> dict:
         """Everything worth reporting at the end of a run, as plain data."""
         loc = self.localizer
@@ -271,15 +280,7 @@ class Pipeline:
                               "frozen_episodes": {n: c for n, c in zip(schema.SIGNAL_NAMES, self.stats.signal_frozen,
                                                                         strict=True) if c}},
             "steps_by_status": statuses,
-            "gnss_rejected": loc.n_gnss_rejected,
-            "inferences": loc.n_inferences, "inference_failures": loc.n_inference_failures,
-            "model_used_steps": loc.n_model_used,
-            "guard": {"predictions": loc.guard_stats.n_predictions, "fired": loc.guard_stats.n_fired,
-                      "fire_rate": loc.guard_stats.fire_rate},
-            "ekf_resets": loc.ekf.n_resets if loc.ekf is not None else 0,
-            "gnss_init_rejected": loc.filter.n_gnss_init_rejected,
-            "calibration": {**loc.filter.summary().get("calibration", {"enabled": loc.config.calibration}),
-                            **(self.calibration_file.summary() if self.calibration_file is not None else {})},
+            **self._localizer_summary(loc),
             "latency": self.latency.summary(),
             "wall_s": wall_s, "data_s": data_s, "realtime_factor": (data_s / wall_s) if wall_s > 0 else None,
             "last": last, "sinks": sinks,
