@@ -26,7 +26,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import can
 
-    from prml2_edge.cli.runtime_app import build_pipeline, config_from_args, summary_lines, write_summary_json
+    from prml2_edge.cli.runtime_app import (
+        build_pipeline,
+        calibration_save_error,
+        config_from_args,
+        summary_lines,
+        write_summary_json,
+    )
     from prml2_edge.errors import DataError
     from prml2_edge.progress import Progress
     from prml2_edge.runtime.pipeline import run_source
@@ -78,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
         print("  " + line)
     if args.summary_json:
         write_summary_json(args.summary_json, summary)
-    error = error or problem
+    error = error or problem or calibration_save_error(pipeline)
     if error:
         raise DataError(error)
     return 0

@@ -29,7 +29,13 @@ def run(args: argparse.Namespace) -> int:
     import threading
     import time
 
-    from prml2_edge.cli.runtime_app import build_pipeline, config_from_args, summary_lines, write_summary_json
+    from prml2_edge.cli.runtime_app import (
+        build_pipeline,
+        calibration_save_error,
+        config_from_args,
+        summary_lines,
+        write_summary_json,
+    )
     from prml2_edge.runtime.pipeline import run_source
     from prml2_edge.runtime.sinks import CanSink
     from prml2_edge.runtime.source import BusSource, open_bus
@@ -91,4 +97,9 @@ def run(args: argparse.Namespace) -> int:
         print("  " + line)
     if args.summary_json:
         write_summary_json(args.summary_json, summary)
+    error = calibration_save_error(pipeline)
+    if error:
+        from prml2_edge.errors import DataError
+
+        raise DataError(error)
     return 0

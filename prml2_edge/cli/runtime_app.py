@@ -158,6 +158,14 @@ def calibration_lines(cal: dict, init_rejected: int = 0) -> list[str]:
     return lines
 
 
+def calibration_save_error(pipeline: Pipeline) -> str | None:
+    """One line when the calibration file the user asked for could not be saved (the run then exits non-zero)."""
+    f = pipeline.calibration_file
+    if f is None or f.write_error is None:
+        return None
+    return f"calibration file {f.path}: the calibration could not be saved ({f.write_error})"
+
+
 def write_summary_json(path: str | Path, summary: dict) -> None:
     def default(obj):
         if hasattr(obj, "item"):

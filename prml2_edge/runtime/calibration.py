@@ -49,6 +49,7 @@ class CalibrationFile:
         self.path = Path(self.path).expanduser()
         self.n_saves = 0
         self.last_error: str | None = None
+        self.write_error: str | None = None  # the last failed save (a refused file on load is not one)
         self.restored = False
         self._last_save_t: float | None = None
 
@@ -87,6 +88,18 @@ class CalibrationFile:
         self.restored = True
         return cal, cov
 
+    def check_writable(self) -> None:
+        """Refuse at start-up, with one line, a place the calibration can never be saved to."""
+        from prml2_edge.errors import ConfigError
+
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            with tempfile.NamedTemporaryFile(prefix=f".{self.path.name}.", dir=self.path.parent):
+                pass
+        except OSError as exc:
+            raise ConfigError(f"calibration file {self.path}: cannot write there ({exc.strerror or exc}); "
+                              "give a writable path or leave --calibration out") from None
+
     def _refuse(self, why: str) -> None:
         self.last_error = why
         log.warning("calibration file %s %s: starting from the default calibration (it is rewritten at the "
@@ -119,7 +132,7 @@ class CalibrationFile:
                 Path(tmp).unlink(missing_ok=True)
                 raise
         except OSError as exc:
-            self.last_error = f"cannot write {self.path} ({exc.strerror or exc})"
+            self.last_error = self.write_error = f"cannot write {self.path} ({exc.strerror or exc})"
             return False
         if t_s is not None:
             self._last_save_t = t_s

@@ -155,6 +155,7 @@ class Pipeline:
 
         dbc = self.dbc_path.name if self.dbc_path else self.signal_map.dbc
         self.calibration_file = CalibrationFile(Path(path), f"{self.signal_map.name} ({dbc})")
+        self.calibration_file.check_writable()
         restored = self.calibration_file.load()
         if restored is not None:
             self.localizer.restore_calibration(*restored)

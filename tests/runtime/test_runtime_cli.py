@@ -204,3 +204,12 @@ def test_replay_saves_the_calibration_and_the_next_run_restores_it(files, tmp_pa
     assert sum("calibration file" in r.getMessage() for r in caplog.records) == 1
     assert json.loads(cal.read_text())["format"] == "prml2-calibration"  # rewritten at the end
     capsys.readouterr()
+
+
+def test_a_calibration_file_that_cannot_be_written_is_refused_at_start(files, tmp_path, capsys):
+    root, model, _ = files
+    (tmp_path / "a_file").write_text("")
+    rc = main(["replay", str(root / "drive.log"), "--model", str(model), "--calibration",
+               str(tmp_path / "a_file" / "cal.json")])
+    assert rc != 0
+    assert "cannot write there" in one_line_error(capsys)
