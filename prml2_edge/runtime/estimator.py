@@ -17,7 +17,6 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.guard import GuardStats, physics_guard
-from prml2_edge.runtime.latency import LatencyRecorder
 from prml2_edge.runtime.status import InferenceStatus
 from prml2_edge.runtime.window import Window
 
@@ -40,18 +39,18 @@ class Estimate:
     z: np.ndarray | None = None
     z_var: np.ndarray | None = None
     guard_fired: bool = False
+    infer_ns: int = 0  # time spent in the model and in the guard at this step (the pipeline records them)
+    guard_ns: int = 0
 
 
 class Estimator:
     """Window, inference when due, physics guard; :meth:`step` once per 50 Hz row."""
 
-    def __init__(self, model: Model, stride: int, max_invalid_fraction: float, a_max_mps2: float,
-                 latency: LatencyRecorder | None = None) -> None:
+    def __init__(self, model: Model, stride: int, max_invalid_fraction: float, a_max_mps2: float) -> None:
         self.model = model
         self.stride = int(stride)
         self.max_invalid_fraction = float(max_invalid_fraction)
         self.a_max_mps2 = float(a_max_mps2)
-        self.latency = latency
         self.guard_stats = GuardStats()
         self.window = Window(model.window_len)
         # the newest window's newest decoder output, guarded: the only one ever consumed (see step)
@@ -67,7 +66,8 @@ class Estimator:
         self.n_inferences = 0
         self.n_inference_failures = 0
 
-    def _infer(self) -> None:
+    def _infer(self) -> tuple[int, int]:
+        """Run the model on the window; ``(infer_ns, guard_ns)``."""
         t0 = time.perf_counter_ns()
         status = self.model.step(self.window.view())
         t1 = time.perf_counter_ns()
@@ -83,9 +83,7 @@ class Estimator:
             self._z_mean, self._z_var, self._fired = mean[0], var[0], bool(fired[0])
             self.guard_stats.update(fired)
             self._output_ok = self.window.invalid_fraction <= self.max_invalid_fraction
-        if self.latency is not None:
-            self.latency.add("infer", t1 - t0)
-            self.latency.add("guard", time.perf_counter_ns() - t1)
+        return t1 - t0, time.perf_counter_ns() - t1
 
     def step(self, values: np.ndarray, all_valid: bool, discontinuity: bool = False) -> Estimate:
         """One row ``values`` (9,) into the window; the z to use at this step, if any."""
@@ -95,15 +93,16 @@ class Estimator:
             self._output_ok = False
         self.window.step(values, all_valid)
         inferred = False
+        infer_ns = guard_ns = 0
         if self.window.full and (self._inf_count < 0 or self.window.count - self._inf_count >= self.stride):
-            self._infer()
+            infer_ns, guard_ns = self._infer()
             inferred = True
         if self._output_ok and all_valid and self._inf_count >= 0:
             # Causal streaming: between windows (stride > 1) the newest window's newest output, the estimate
             # for step k - offset, is held; older decoder rows describe older steps and are never used.
             if self.window.count - self._inf_count < self.stride:
-                return Estimate(inferred, self._z_mean, self._z_var, self._fired)
-        return Estimate(inferred)
+                return Estimate(inferred, self._z_mean, self._z_var, self._fired, infer_ns, guard_ns)
+        return Estimate(inferred, infer_ns=infer_ns, guard_ns=guard_ns)
 
     def summary(self) -> dict:
         g = self.guard_stats

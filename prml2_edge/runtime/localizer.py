@@ -24,7 +24,6 @@ from prml2_edge.ekf.numpy_ekf import CalibrationNoise, CalibrationStd, StepStatu
 from prml2_edge.runtime.estimator import Estimate, Estimator, Model
 from prml2_edge.runtime.filter import PoseFilter
 from prml2_edge.runtime.initial_pose import InitialPose
-from prml2_edge.runtime.latency import LatencyRecorder
 from prml2_edge.runtime.rows import GnssFix
 from prml2_edge.runtime.status import PoseStatus
 from prml2_edge.schema import CalState, EkfState
@@ -130,6 +129,10 @@ class StepOutput:
     cal: np.ndarray | None = None  # (3,) calibration states (schema.CalState), when on
     cues_used: bool = False
     standstill: bool = False
+    # time spent in the model, the guard and the filter at this step [ns] (the pipeline records them)
+    infer_ns: int = 0
+    guard_ns: int = 0
+    filter_ns: int = 0
 
     def record(self) -> dict:
         """A flat, JSON-ready dict (non-finite numbers become None)."""
@@ -198,13 +201,12 @@ class StreamingLocalizer:
         present, else :func:`prml2_edge.ekf.numpy_ekf.default_process_noise`.
     initial_pose:
         Where to start; None waits for GNSS (status ``INITIALISING``).
-    latency:
-        Records ``infer``, ``guard`` and ``filter`` durations when given.
+
+    Each :class:`StepOutput` carries the time its model, guard and filter took; the pipeline records them.
     """
 
     def __init__(self, model: Model, config: LocalizerConfig | None = None, process_noise: np.ndarray | None = None,
-                 initial_pose: InitialPose | None = None, latency: LatencyRecorder | None = None,
-                 dt_s: float = schema.DT_S) -> None:
+                 initial_pose: InitialPose | None = None, dt_s: float = schema.DT_S) -> None:
         self.model = model
         self.config = config or LocalizerConfig()
         self.dt_s = float(dt_s)
@@ -212,10 +214,8 @@ class StreamingLocalizer:
             process_noise = getattr(getattr(model, "metadata", None), "ekf_process_noise", None)
         if process_noise is None:
             process_noise = default_process_noise(self.dt_s)
-        self.latency = latency
         cfg = self.config
-        self.estimator = Estimator(model, cfg.stride, cfg.max_invalid_fraction, schema.accel_limit_mps2(cfg.mu),
-                                   latency)
+        self.estimator = Estimator(model, cfg.stride, cfg.max_invalid_fraction, schema.accel_limit_mps2(cfg.mu))
         self.filter = PoseFilter(cfg, process_noise, initial_pose, self.dt_s)
         self.reset()
 
@@ -270,12 +270,12 @@ class StreamingLocalizer:
         fix = gnss if (gnss is not None and gnss.valid and self.config.fuse_gnss) else None
         t_filter = time.perf_counter_ns()
         res = self.filter.step(values, valid, t_s, est, fix)
-        if self.latency is not None:
-            self.latency.add("filter", time.perf_counter_ns() - t_filter)
+        filter_ns = time.perf_counter_ns() - t_filter
         out = self._output(t_s, res.ekf_status, est, res.model_used, res.gnss_fused, valid, all_valid,
                            res.standstill)
         out.bus_silent = bus_silent
         out.cues_used, out.standstill = res.cues_used, res.standstill
+        out.infer_ns, out.guard_ns, out.filter_ns = est.infer_ns, est.guard_ns, filter_ns
         return out
 
     def _output(self, t_s: float, ekf_status: StepStatus | None, est: Estimate, model_used: bool,

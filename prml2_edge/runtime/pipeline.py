@@ -104,7 +104,7 @@ class Pipeline:
         self.localizer = localizer
         self.sinks = list(sinks)
         self.stats = stats if stats is not None else decoder.stats
-        self.latency = latency if latency is not None else (localizer.latency or LatencyRecorder())
+        self.latency = latency if latency is not None else LatencyRecorder()
         self.dbc_path = dbc_path
         self.calibration_file = None  # a runtime.calibration.CalibrationFile (see use_calibration_file)
         self.last: StepOutput | None = None
@@ -142,7 +142,7 @@ class Pipeline:
         latency = LatencyRecorder()
         decoder = FrameDecoder(signal_map, db, stats)
         assembler = Assembler.for_map(signal_map, stale_periods=stale_periods, stats=stats)
-        localizer = StreamingLocalizer(model, cfg, initial_pose=initial_pose, latency=latency)
+        localizer = StreamingLocalizer(model, cfg, initial_pose=initial_pose)
         pipeline = cls(signal_map, decoder, assembler, localizer, sinks, stats, latency, dbc_path)
         if calibration_file is not None and cfg.calibration:
             pipeline.use_calibration_file(calibration_file)
@@ -193,6 +193,10 @@ class Pipeline:
         if self.first_t_s is None:
             self.first_t_s = row.t_s
         out = self.localizer.step(row.values, row.valid, row.t_s, row.gnss, row.discontinuity, row.bus_silent)
+        if out.inferred:
+            self.latency.add("infer", out.infer_ns)
+            self.latency.add("guard", out.guard_ns)
+        self.latency.add("filter", out.filter_ns)
         if out.bus_silent:
             self.bus_silent_rows += 1
         t_sinks = time.perf_counter_ns()
