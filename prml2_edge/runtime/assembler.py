@@ -264,6 +264,18 @@ class Assembler:
         """(9,) bool: signals a :class:`StuckCheck` currently holds frozen."""
         return self._frozen.copy()
 
+    def max_signal_age_s(self) -> float | None:
+        """Age [s] of the oldest held signal at the last emitted row (None before the first row or any value)."""
+        t_row = self.last_row_t_s
+        if t_row is None or not np.isfinite(self.last_t_s).any():
+            return None
+        return float(np.max(t_row - self.last_t_s))
+
+    def summary(self) -> dict:
+        """The assembler's part of the end-of-run summary."""
+        return {"grid_resyncs": self.resyncs,
+                "frozen_now": [schema.SIGNAL_NAMES[i] for i in np.flatnonzero(self._frozen)]}
+
     def flush(self, recv_ns: int = 0) -> list[AssembledRow]:
         """At the end of a stream: emit the row that holds the last frame (if not yet emitted)."""
         if self._t0 is None:

@@ -235,10 +235,9 @@ class Pipeline:
         if out is not None:
             invalid = [schema.SIGNALS[i].symbol for i in np.flatnonzero(~out.valid)]
             parts.append("invalid: " + (",".join(invalid) if invalid else "none"))
-            age = self.assembler.last_row_t_s
-            if age is not None and np.isfinite(self.assembler.last_t_s).any():
-                max_age_ms = 1000.0 * float(np.max(age - self.assembler.last_t_s))
-                parts.append(f"max age {max_age_ms:.0f} ms")
+            max_age_s = self.assembler.max_signal_age_s()
+            if max_age_s is not None:
+                parts.append(f"max age {1000.0 * max_age_s:.0f} ms")
         if e2e.get("count"):
             parts.append(f"e2e p50/p99 {e2e['p50_ms']:.2f}/{e2e['p99_ms']:.2f} ms")
         if out is not None:
@@ -276,12 +275,13 @@ class Pipeline:
             last = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in last.items()}
         sinks = {type(s).__name__: {k: getattr(s, k) for k in ("rows", "frames", "errors", "last_error")
                                     if hasattr(s, k)} for s in self.sinks}
+        assembler = self.assembler.summary()
         return {
             "map": self.signal_map.name, "dbc": str(self.dbc_path) if self.dbc_path else self.signal_map.dbc,
             "model": getattr(model, "describe", lambda: type(model).__name__)(),
             "frames": self.stats.as_dict(),
-            "rows": self.rows, "grid_resyncs": self.assembler.resyncs, "bus_silent_rows": self.bus_silent_rows,
-            "signal_faults": {"frozen_now": [schema.SIGNAL_NAMES[i] for i in np.flatnonzero(self.assembler.frozen)],
+            "rows": self.rows, "grid_resyncs": assembler["grid_resyncs"], "bus_silent_rows": self.bus_silent_rows,
+            "signal_faults": {"frozen_now": assembler["frozen_now"],
                               "frozen_episodes": {n: c for n, c in zip(schema.SIGNAL_NAMES, self.stats.signal_frozen,
                                                                         strict=True) if c}},
             "steps_by_status": statuses,
