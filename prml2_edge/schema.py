@@ -147,18 +147,19 @@ class EkfState:
 class CalState:
     """Slow error states appended to :class:`EkfState` when the filter self-calibrates.
 
-    Full state with calibration: ``[EkfState (8) | offset_yaw, scale_wheel, bias_model_omega]``.
-    Each is a random walk; what makes it observable (standstill, GNSS, the raw cues) is in
-    :mod:`prml2_edge.runtime.filter`. Measurement models:
+    Full state with calibration: ``[EkfState (8) | yaw-rate offset, wheel scale, model omega bias]``.
+    The offset and the scale are random walks, the model bias a first-order Gauss-Markov process;
+    what makes them observable (standstill, GNSS, the raw cues) is in :mod:`prml2_edge.runtime.filter`.
+    Measurement models (:mod:`prml2_edge.ekf.numpy_ekf`):
 
-    * ``YAW_RATE_OFFSET`` [rad/s]: CAN yaw rate ``psi_dot = omega_z + offset``;
-    * ``WHEEL_SCALE`` [1]: rear-axle wheel speed ``(v_rl + v_rr) / 2 = (1 + scale) v_x`` (rolling
-      radius error; 0.01 means the wheels read 1 % fast);
-    * ``MODEL_OMEGA_BIAS`` [rad/s]: the model's ``omega_z = omega_z + bias`` (its error is slow, a
-      bias over the 5 s window; against the calibrated CAN yaw rate it is observable while driving).
+    * ``YAW_RATE_OFFSET`` [rad/s]: CAN yaw rate ``= omega_z + offset``; the model's
+      ``omega_z = omega_z + offset + model bias`` (it reads the same sensor);
+    * ``WHEEL_SCALE`` [1]: rear-axle wheel speed ``(v_rl + v_rr) / 2 = (1 + scale) v_x`` and the model's
+      ``v_x = (1 + scale) v_x`` (rolling-radius error; 0.01: the wheels read 1 % fast); learned from
+      GNSS distance only;
+    * ``MODEL_OMEGA_BIAS`` [rad/s]: the model's slow omega_z error (a bias over its 5 s window).
     """
 
-    START = 8
     YAW_RATE_OFFSET = slice(8, 9)
     WHEEL_SCALE = slice(9, 10)
     MODEL_OMEGA_BIAS = slice(10, 11)
@@ -166,7 +167,6 @@ class CalState:
     DIM = 3
     NAMES = ("yaw_rate_offset_radps", "wheel_scale", "model_omega_bias_radps")
     FULL_DIM = 11  # EkfState.DIM + DIM
-    FULL_NAMES = EkfState.NAMES + NAMES
 
 
 # Heading conventions: people, GNSS receivers, DBCs and ReV-StED's ``ins_yaw`` give a true heading
