@@ -60,7 +60,9 @@ class Estimator:
         self.reset()
 
     def reset(self) -> None:
+        """Back to the state before the first row: window, inference schedule and guard statistics."""
         self.window.clear()
+        self.guard_stats.reset()
         self._inf_count = -1  # window.count at the last inference; -1: none yet
         self._output_ok = False
         self.n_inferences = 0
