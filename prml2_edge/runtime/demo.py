@@ -40,6 +40,13 @@ class DemoResult:
     latency_lines: list[str] = field(default_factory=list)  # LatencyRecorder.report_lines()
 
 
+def align_with_truth(arrays: dict[str, np.ndarray], drive) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows matched to the drive by time: true pose (N, 3), estimated pose (N, 3), and which rows have one."""
+    k = np.clip(np.rint((arrays["t_s"] - drive.t_s[0]) / schema.DT_S).astype(np.int64), 0, len(drive) - 1)
+    estimate = arrays["x"][:, [EkfState.POS.start, EkfState.POS.start + 1, EkfState.YAW.start]]
+    return drive.pose_gt[k].copy(), estimate, np.all(np.isfinite(estimate), axis=1)
+
+
 def compare_with_truth(arrays: dict[str, np.ndarray], drive, outage_start_s: float | None = None) -> dict:
     """A replay's :class:`MemorySink` arrays against a drive's ground truth (rows matched by time).
 
@@ -50,10 +57,8 @@ def compare_with_truth(arrays: dict[str, np.ndarray], drive, outage_start_s: flo
     from prml2_edge.ekf.numpy_ekf import coverage_pct, mahalanobis2
 
     t_s = arrays["t_s"]
-    k = np.clip(np.rint((t_s - drive.t_s[0]) / schema.DT_S).astype(np.int64), 0, len(drive) - 1)
-    truth = drive.pose_gt[k]
-    est = arrays["x"][:, [EkfState.POS.start, EkfState.POS.start + 1]]
-    ok = np.all(np.isfinite(est), axis=1)
+    truth, estimate, ok = align_with_truth(arrays, drive)
+    est = estimate[:, :2]
     if outage_start_s is None:
         lost = np.flatnonzero(arrays["gnss_outage"])
         outage_start_s = float(t_s[lost[0]]) if lost.size else float(t_s[ok][0]) if ok.any() else float(t_s[0])
@@ -114,10 +119,7 @@ def run_demo(out_dir: str | Path, model: str | Path | None = None, seconds: floa
         pipeline.close()
     arrays = mem.arrays()
     t_s = arrays["t_s"]
-    k = np.clip(np.rint((t_s - drive.t_s[0]) / schema.DT_S).astype(np.int64), 0, len(drive) - 1)
-    truth = drive.pose_gt[k].copy()
-    estimate = arrays["x"][:, [EkfState.POS.start, EkfState.POS.start + 1, EkfState.YAW.start]]
-    ok = np.all(np.isfinite(estimate), axis=1)
+    truth, estimate, ok = align_with_truth(arrays, drive)
     metrics = compare_with_truth(arrays, drive, drive.t_s[0] + gnss_seconds)
     plot_path = None
     if plot:
