@@ -100,8 +100,8 @@ def torch_pipeline(model: Prml2Model, initial_pose: InitialPose, signal_map: str
     smap, db, dbc_path = load_map_and_dbc(resolve_map(signal_map), None)
     stats = FrameStats()
     latency = LatencyRecorder()
-    decoder = FrameDecoder(smap, db, stats)
+    decoder = FrameDecoder(smap, db)
     stale = inspect.signature(Pipeline.build).parameters["stale_periods"].default  # the runtime's default
-    assembler = Assembler.for_map(smap, stale_periods=stale, stats=stats)
+    assembler = Assembler.for_map(smap, stale_periods=stale)
     localizer = TorchEagerLocalizer(model, initial_pose, latency, dtype=dtype)
     return Pipeline(smap, decoder, assembler, localizer, (), stats, latency, dbc_path)

@@ -26,13 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import can
 
-    from prml2_edge.cli.runtime_app import (
-        build_pipeline,
-        calibration_save_error,
-        config_from_args,
-        summary_lines,
-        write_summary_json,
-    )
+    from prml2_edge.cli.runtime_app import build_pipeline, config_from_args, report_run
     from prml2_edge.errors import DataError
     from prml2_edge.progress import Progress
     from prml2_edge.runtime.pipeline import run_source
@@ -71,20 +65,10 @@ def run(args: argparse.Namespace) -> int:
     finally:
         pipeline.close()
     summary = pipeline.summary()
-    for line in summary_lines(summary):
-        print(line)
+    extra_lines = []
     if truth is not None:
         from prml2_edge.runtime.demo import compare_with_truth, truth_lines
 
         summary["truth"] = compare_with_truth(memory.arrays(), truth)
-        for line in truth_lines(summary["truth"]):
-            print(line)
-    print("latency per stage:")
-    for line in pipeline.latency.report_lines():
-        print("  " + line)
-    if args.summary_json:
-        write_summary_json(args.summary_json, summary)
-    error = error or problem or calibration_save_error(pipeline)
-    if error:
-        raise DataError(error)
-    return 0
+        extra_lines = truth_lines(summary["truth"])
+    return report_run(pipeline, summary, args.summary_json, extra_lines, error=error or problem)

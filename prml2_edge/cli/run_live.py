@@ -29,13 +29,7 @@ def run(args: argparse.Namespace) -> int:
     import threading
     import time
 
-    from prml2_edge.cli.runtime_app import (
-        build_pipeline,
-        calibration_save_error,
-        config_from_args,
-        summary_lines,
-        write_summary_json,
-    )
+    from prml2_edge.cli.runtime_app import build_pipeline, config_from_args, report_run
     from prml2_edge.runtime.pipeline import run_source
     from prml2_edge.runtime.sinks import CanSink
     from prml2_edge.runtime.source import BusSource, open_bus
@@ -88,18 +82,5 @@ def run(args: argparse.Namespace) -> int:
         notifier.close()
     summary = pipeline.summary()
     summary["bus_errors"] = source.errors
-    for line in summary_lines(summary):
-        print(line)
-    if source.errors:
-        print(f"bus receive errors: {source.errors} (last: {source.last_error})")
-    print("latency per stage:")
-    for line in pipeline.latency.report_lines():
-        print("  " + line)
-    if args.summary_json:
-        write_summary_json(args.summary_json, summary)
-    error = calibration_save_error(pipeline)
-    if error:
-        from prml2_edge.errors import DataError
-
-        raise DataError(error)
-    return 0
+    extra_lines = [f"bus receive errors: {source.errors} (last: {source.last_error})"] if source.errors else []
+    return report_run(pipeline, summary, args.summary_json, extra_lines)

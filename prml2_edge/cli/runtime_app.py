@@ -174,3 +174,22 @@ def write_summary_json(path: str | Path, summary: dict) -> None:
 
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Path(path).write_text(json.dumps(summary, indent=2, default=default) + "\n")
+
+
+def report_run(pipeline: Pipeline, summary: dict, summary_json: str | None, extra_lines: list[str] = (),
+               error: str | None = None) -> int:
+    """End of a replay or a live run: print the summary, ``extra_lines`` and the latency per stage, write
+    ``summary_json``; raise one line when the run failed (``error``, or the calibration file could not be saved)."""
+    from prml2_edge.errors import DataError
+
+    for line in [*summary_lines(summary), *extra_lines]:
+        print(line)
+    print("latency per stage:")
+    for line in pipeline.latency.report_lines():
+        print("  " + line)
+    if summary_json:
+        write_summary_json(summary_json, summary)
+    error = error or calibration_save_error(pipeline)
+    if error:
+        raise DataError(error)
+    return 0

@@ -10,9 +10,9 @@ when the signal has been received, its last quality bit was good and its age is 
 ``stale_periods`` periods of the signal's rate (``rate_hz`` from the signal map).
 
 Jitter and out-of-order frames: a value is applied only when its timestamp is not older
-than the value already held for that signal; otherwise it is dropped (``stats.signal_late``).
+than the value already held for that signal; otherwise it is dropped (``DecodedFrame.late``).
 A frame older than the last emitted row ("late") still updates the hold value when it is
-newer than what is held (counted in ``stats.late_applied``); it cannot change rows already
+newer than what is held (``DecodedFrame.late_applied``); it cannot change rows already
 emitted. A frame none of whose values could be applied is ``REJECTED_LATE``.
 
 Gaps: bus silence up to ``max_gap_s`` is filled with held (stale, hence invalid) rows, flagged
@@ -21,14 +21,14 @@ Gaps: bus silence up to ``max_gap_s`` is filled with held (stale, hence invalid)
 the next row ``discontinuity`` (the localiser restarts its window). A clock that jumps back by
 more than ``max_backstep_s`` (a logger or gateway clock reset, not jitter) re-bases the grid
 and every held timestamp by the jump, so rows and ages continue without a loss
-(``stats.clock_jumps``). A jump back must be confirmed by the next frame (within
+(``DecodedFrame.clock_jump``). A jump back must be confirmed by the next frame (within
 ``max_backstep_s`` of it): a lone frame with an old outlier timestamp is ``REJECTED_TIMESTAMP``
 and moves nothing (the first frame after a real jump back is lost that way). A lone frame far in
 the future re-anchors at once (after a real silence nothing else would start the grid again).
 
 Stuck sensors (:class:`StuckCheck`): a signal whose value has not changed for ``hold_s``
 while the car moves (speedometer >= ``min_speed_mps``) and a witness signal moved by more
-than its span is frozen; it stays invalid until its value changes (``stats.signal_frozen``
+than its span is frozen; it stays invalid until its value changes (``AssembledRow.newly_frozen``
 counts the episodes). The default check is the yaw rate against the steering wheel angle and
 the lateral acceleration: a turning car whose yaw rate does not move has a stuck gyro.
 """
@@ -42,7 +42,6 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.runtime.rows import AssembledRow, DecodedFrame, GnssFix
-from prml2_edge.runtime.stats import FrameStats
 from prml2_edge.runtime.status import FrameStatus
 
 
@@ -98,7 +97,7 @@ class Assembler:
     """
 
     def __init__(self, rate_hz, stale_periods: float = 3.0, dt_s: float = schema.DT_S, max_gap_s: float = 5.0,
-                 eps_s: float = 1e-4, stats: FrameStats | None = None, bus_silent_s: float = 3 * schema.DT_S,
+                 eps_s: float = 1e-4, bus_silent_s: float = 3 * schema.DT_S,
                  max_backstep_s: float = 0.25, stuck_checks: tuple[StuckCheck, ...] = (YAW_RATE_STUCK,)) -> None:
         rate = np.asarray(rate_hz, dtype=np.float64)
         if rate.shape != (schema.NUM_SIGNALS,) or not np.all(rate > 0):
@@ -109,7 +108,6 @@ class Assembler:
         self.dt_s = float(dt_s)
         self.max_gap_s = float(max_gap_s)
         self.eps_s = float(eps_s)
-        self.stats = stats if stats is not None else FrameStats()
         self.bus_silent_s = float(bus_silent_s)
         self.max_backstep_s = float(max_backstep_s)
         self.stuck_checks = tuple(stuck_checks)
@@ -146,12 +144,13 @@ class Assembler:
         t_k = self._t(k)
         age = t_k - self.last_t_s
         valid = self.quality_ok & (age <= self.stale_after_s + self.eps_s)
+        newly_frozen: tuple[int, ...] = ()
         if self.stuck_checks:
-            self._check_stuck(t_k)
+            newly_frozen = self._check_stuck(t_k)
             valid &= ~self._frozen
         silent = t_k - self.last_frame_t_s > self.bus_silent_s + self.eps_s
         row = AssembledRow(k, t_k, self.values.copy(), valid, age, self._pending_gnss, self._discontinuity,
-                           trigger_ns, silent)
+                           trigger_ns, silent, newly_frozen)
         self._pending_gnss = None
         self._discontinuity = False
         self._k_next += 1
@@ -181,6 +180,7 @@ class Assembler:
             self._jump_t_s = None
             if back:
                 self._rebase(t - self.last_frame_t_s)
+                frame.clock_jump = True
             if t - self._t(self._k_next) > self.max_gap_s:
                 self._reanchor(t)
             else:
@@ -194,7 +194,7 @@ class Assembler:
         applied = 0
         for i, value, ok in zip(frame.index, frame.value_si, frame.ok, strict=True):
             if t < self.last_t_s[i]:
-                self.stats.signal_late[i] += 1
+                frame.late.append(i)
                 continue
             self.last_t_s[i] = t
             self.quality_ok[i] = ok
@@ -202,7 +202,7 @@ class Assembler:
                 if self.stuck_checks:
                     self._track_stuck(i, value, t)
                 self.values[i] = value
-                self.stats.signal_updates[i] += 1
+                frame.updated.append(i)
             applied += 1
         if frame.gnss is not None:
             if self._pending_gnss is None or t >= self._pending_gnss.t_s:
@@ -210,8 +210,7 @@ class Assembler:
             applied += 1
         if applied == 0:
             return FrameStatus.REJECTED_LATE, rows
-        if late:
-            self.stats.late_applied += 1
+        frame.late_applied = late
         return status, rows
 
     def _reanchor(self, t: float) -> None:
@@ -233,7 +232,6 @@ class Assembler:
             self._stuck_since[index] += shift_s
         if self._pending_gnss is not None:
             self._pending_gnss = None  # its time belongs to the old clock
-        self.stats.clock_jumps += 1
 
     def _track_stuck(self, i: int, value: float, t: float) -> None:
         """Before ``values[i]`` takes ``value``: restart the hold of a checked signal, widen witness spans."""
@@ -248,7 +246,9 @@ class Assembler:
                     self._stuck_lo[check.index][j] = min(self._stuck_lo[check.index][j], value)
                     self._stuck_hi[check.index][j] = max(self._stuck_hi[check.index][j], value)
 
-    def _check_stuck(self, t_k: float) -> None:
+    def _check_stuck(self, t_k: float) -> tuple[int, ...]:
+        """Freeze checked signals held too long while their witnesses moved; return the newly frozen ones."""
+        frozen = []
         for c in self.stuck_checks:
             if self._frozen[c.index]:
                 continue
@@ -257,7 +257,8 @@ class Assembler:
             if moving and t_k - self._stuck_since[c.index] >= c.hold_s - self.eps_s and \
                     bool(np.any(spans >= np.asarray(c.span))):
                 self._frozen[c.index] = True
-                self.stats.signal_frozen[c.index] += 1
+                frozen.append(c.index)
+        return tuple(frozen)
 
     @property
     def frozen(self) -> np.ndarray:

@@ -23,7 +23,6 @@ from prml2_edge import schema
 from prml2_edge.can.checksum import checksum_function
 from prml2_edge.can.signal_map import SignalMap
 from prml2_edge.runtime.rows import DecodedFrame, GnssFix
-from prml2_edge.runtime.stats import FrameStats
 from prml2_edge.runtime.status import FrameStatus
 
 
@@ -62,19 +61,14 @@ class FrameDecoder:
     ----------
     signal_map, db:
         A map checked against ``db`` (``load_map_and_dbc``).
-    stats:
-        Per-signal drop counters are added here (frame outcomes are counted by the caller,
-        after the assembler has had its say on late frames).
     max_counter_jump:
         An alive counter may advance by 1..``max_counter_jump`` (frames lost upstream are
-        counted in ``stats.counter_gaps``); 0 (a repeat) or a larger step (out of sequence,
+        noted in ``DecodedFrame.counter_gap``); 0 (a repeat) or a larger step (out of sequence,
         or a frame older than the last) rejects the frame. The decoder always resynchronises
         on the frame's counter, so one bad counter costs at most one frame.
     """
 
-    def __init__(self, signal_map: SignalMap, db: cantools.database.can.Database, stats: FrameStats | None = None,
-                 max_counter_jump: int = 7) -> None:
-        self.stats = stats if stats is not None else FrameStats()
+    def __init__(self, signal_map: SignalMap, db: cantools.database.can.Database, max_counter_jump: int = 7) -> None:
         self.max_counter_jump = max_counter_jump
         self.plans: dict[int, _MessagePlan] = {}
         for spec in signal_map.signals:
@@ -101,20 +95,13 @@ class FrameDecoder:
             self.plans[msg.frame_id] = plan
         return plan
 
-    @property
-    def frame_ids(self) -> list[int]:
-        """Arbitration IDs this decoder uses (for a bus-level receive filter)."""
-        return sorted(self.plans)
-
     def step(self, msg: can.Message) -> DecodedFrame:
         """Decode one frame; never raises. ``msg.timestamp`` [s] becomes ``t_s``."""
         t_s = float(msg.timestamp)
         if msg.is_error_frame:
-            self.stats.error_frames += 1
-            return DecodedFrame(FrameStatus.IGNORED, t_s)
+            return DecodedFrame(FrameStatus.IGNORED, t_s, kind="error")
         if msg.is_remote_frame:
-            self.stats.remote_frames += 1
-            return DecodedFrame(FrameStatus.IGNORED, t_s)
+            return DecodedFrame(FrameStatus.IGNORED, t_s, kind="remote")
         plan = self.plans.get(msg.arbitration_id)
         if plan is None or msg.is_extended_id != plan.is_extended:
             return DecodedFrame(FrameStatus.IGNORED, t_s)
@@ -132,6 +119,7 @@ class FrameDecoder:
                 return DecodedFrame(FrameStatus.REJECTED_CHECKSUM, t_s, plan.name)
             if int(decoded[plan.checksum]) != expected:
                 return DecodedFrame(FrameStatus.REJECTED_CHECKSUM, t_s, plan.name)
+        gap = False
         if plan.counter is not None:
             counter = int(decoded[plan.counter])
             last, plan.last_counter = plan.last_counter, counter
@@ -139,29 +127,28 @@ class FrameDecoder:
                 delta = (counter - last) % plan.counter_modulus
                 if delta == 0 or delta > min(self.max_counter_jump, plan.counter_modulus - 2):
                     return DecodedFrame(FrameStatus.REJECTED_COUNTER, t_s, plan.name)
-                if delta > 1:
-                    self.stats.counter_gaps += 1
-        out = DecodedFrame(FrameStatus.USED, t_s, plan.name)
+                gap = delta > 1
+        out = DecodedFrame(FrameStatus.USED, t_s, plan.name, counter_gap=gap)
         n_out_of_range = n_nonfinite = n_invalid = 0
         for sp in plan.signals:
             value = sp.to_si(decoded[sp.signal], decoded[sp.sign] if sp.sign is not None else 0)
             ok = sp.valid is None or int(decoded[sp.valid]) == sp.valid_value
             if not math.isfinite(value):
-                self.stats.signal_nonfinite[sp.index] += 1
+                out.flagged.append((sp.index, "nonfinite"))
                 n_nonfinite += 1
                 continue
             if not ok:
-                self.stats.signal_invalid_flag[sp.index] += 1
+                out.flagged.append((sp.index, "invalid_flag"))
                 n_invalid += 1
             elif not (sp.lo <= value <= sp.hi):
-                self.stats.signal_out_of_range[sp.index] += 1
+                out.flagged.append((sp.index, "out_of_range"))
                 n_out_of_range += 1
                 continue
             out.index.append(sp.index)
             out.value_si.append(float(value))
             out.ok.append(ok)
         if plan.gnss is not None:
-            out.gnss = self._gnss(plan.gnss, decoded, t_s)
+            out.gnss = _gnss(plan.gnss, decoded, t_s)
         n_good = len(out.index) - n_invalid
         if n_good == 0 and not (out.gnss is not None and out.gnss.valid):
             if n_invalid or (out.gnss is not None and not plan.signals):
@@ -172,14 +159,12 @@ class FrameDecoder:
                 out.status = FrameStatus.REJECTED_NONFINITE
         return out
 
-    def _gnss(self, spec, decoded: dict, t_s: float) -> GnssFix:
-        x, y = float(decoded[spec.x]), float(decoded[spec.y])
-        heading = float(decoded[spec.heading]) if spec.heading is not None else None
-        valid = (spec.valid is None or int(decoded[spec.valid]) == 1) and math.isfinite(x) and math.isfinite(y)
-        if heading is not None and not math.isfinite(heading):
-            heading = None
-        if valid:
-            self.stats.gnss_fixes += 1
-        else:
-            self.stats.gnss_invalid += 1
-        return GnssFix(t_s, x, y, heading, valid)
+
+
+def _gnss(spec, decoded: dict, t_s: float) -> GnssFix:
+    x, y = float(decoded[spec.x]), float(decoded[spec.y])
+    heading = float(decoded[spec.heading]) if spec.heading is not None else None
+    valid = (spec.valid is None or int(decoded[spec.valid]) == 1) and math.isfinite(x) and math.isfinite(y)
+    if heading is not None and not math.isfinite(heading):
+        heading = None
+    return GnssFix(t_s, x, y, heading, valid)

@@ -103,7 +103,7 @@ class Pipeline:
         self.assembler = assembler
         self.localizer = localizer
         self.sinks = list(sinks)
-        self.stats = stats if stats is not None else decoder.stats
+        self.stats = stats if stats is not None else FrameStats()
         self.latency = latency if latency is not None else LatencyRecorder()
         self.dbc_path = dbc_path
         self.calibration_file = None  # a runtime.calibration.CalibrationFile (see use_calibration_file)
@@ -140,8 +140,8 @@ class Pipeline:
         cfg = localizer_config or LocalizerConfig(stride=stride, mu=mu, calibration=calibration)
         stats = FrameStats()
         latency = LatencyRecorder()
-        decoder = FrameDecoder(signal_map, db, stats)
-        assembler = Assembler.for_map(signal_map, stale_periods=stale_periods, stats=stats)
+        decoder = FrameDecoder(signal_map, db)
+        assembler = Assembler.for_map(signal_map, stale_periods=stale_periods)
         localizer = StreamingLocalizer(model, cfg, initial_pose=initial_pose)
         pipeline = cls(signal_map, decoder, assembler, localizer, sinks, stats, latency, dbc_path)
         if calibration_file is not None and cfg.calibration:
@@ -177,7 +177,7 @@ class Pipeline:
         t1 = time.perf_counter_ns()
         status, rows = self.assembler.step(frame, recv_ns)
         t2 = time.perf_counter_ns()
-        self.stats.count(status, frame.message)
+        self.stats.add_frame(status, frame)
         lat = self.latency
         lat.add("decode", t1 - t0)
         lat.add("assemble", t2 - t1)
@@ -190,6 +190,7 @@ class Pipeline:
         return [self._row(row) for row in self.assembler.flush()]
 
     def _row(self, row: AssembledRow) -> StepOutput:
+        self.stats.add_row(row)
         if self.first_t_s is None:
             self.first_t_s = row.t_s
         out = self.localizer.step(row.values, row.valid, row.t_s, row.gnss, row.discontinuity, row.bus_silent)

@@ -42,6 +42,11 @@ class DecodedFrame:
     ``index[i]`` is the canonical signal index (``schema.SIGNALS``) of ``value_si[i]``;
     ``ok[i]`` is False when the value's quality bit says invalid (the value is then not held,
     but the signal is marked invalid at once).
+
+    The frame is also its own record: the decoder notes what it saw (``kind``, ``counter_gap``,
+    ``flagged``), the assembler what it did with the values (``updated``, ``late``,
+    ``late_applied``, ``clock_jump``), and the pipeline counts it once
+    (:meth:`prml2_edge.runtime.stats.FrameStats.add_frame`). No stage writes the counters.
     """
 
     status: FrameStatus
@@ -51,6 +56,14 @@ class DecodedFrame:
     value_si: list[float] = field(default_factory=list)
     ok: list[bool] = field(default_factory=list)
     gnss: GnssFix | None = None
+    kind: str | None = None  # "error" / "remote" for CAN error and remote frames
+    counter_gap: bool = False  # alive counter advanced by more than one (frames lost upstream)
+    flagged: list[tuple[int, str]] = field(default_factory=list)  # (signal index, "out_of_range" |
+    #                                    "nonfinite" | "invalid_flag"); the first two are dropped
+    updated: list[int] = field(default_factory=list)  # signals whose held value this frame set
+    late: list[int] = field(default_factory=list)  # signals dropped: older than the held value
+    late_applied: bool = False  # older than the current row, but applied to the hold
+    clock_jump: bool = False  # this frame confirmed a clock jump back (the grid was re-based)
 
 
 @dataclass
@@ -73,6 +86,7 @@ class AssembledRow:
     discontinuity: bool = False
     trigger_ns: int = 0
     bus_silent: bool = False  # no frame at all for more than bus_silent_s before this row
+    newly_frozen: tuple[int, ...] = ()  # signals a stuck check froze at this row
 
     @property
     def all_valid(self) -> bool:

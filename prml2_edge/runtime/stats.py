@@ -1,7 +1,10 @@
 """Frame accounting: every frame that enters is counted as used, ignored or rejected (by reason).
 
 The counts add up: ``received == used + ignored + sum(rejected)``; :meth:`FrameStats.balanced`
-checks it. Per-signal counters say which signal values were dropped and why.
+checks it. Per-signal counters say which signal values were dropped and why. The pipeline is
+the only writer: the decoder and the assembler note what happened on the frame's record
+(:class:`~prml2_edge.runtime.rows.DecodedFrame`) and on each row, and the pipeline counts
+them here with :meth:`FrameStats.add_frame` and :meth:`FrameStats.add_row`.
 """
 
 from __future__ import annotations
@@ -9,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from prml2_edge import schema
+from prml2_edge.runtime.rows import AssembledRow, DecodedFrame
 from prml2_edge.runtime.status import FrameStatus
 
 
@@ -38,10 +42,40 @@ class FrameStats:
     gnss_invalid: int = 0
 
     def count(self, status: FrameStatus, message: str | None = None) -> None:
+        """Count one frame's final outcome only."""
         self.received += 1
         self.by_status[status] += 1
         if status is FrameStatus.USED and message is not None:
             self.by_message[message] = self.by_message.get(message, 0) + 1
+
+    def add_frame(self, status: FrameStatus, frame: DecodedFrame) -> None:
+        """Count one frame: its final ``status`` and what the decoder and assembler noted on it."""
+        self.count(status, frame.message)
+        if frame.kind == "error":
+            self.error_frames += 1
+        elif frame.kind == "remote":
+            self.remote_frames += 1
+        self.counter_gaps += frame.counter_gap
+        per_reason = {"out_of_range": self.signal_out_of_range, "nonfinite": self.signal_nonfinite,
+                      "invalid_flag": self.signal_invalid_flag}
+        for index, reason in frame.flagged:
+            per_reason[reason][index] += 1
+        for index in frame.updated:
+            self.signal_updates[index] += 1
+        for index in frame.late:
+            self.signal_late[index] += 1
+        self.late_applied += frame.late_applied
+        self.clock_jumps += frame.clock_jump
+        if frame.gnss is not None:
+            if frame.gnss.valid:
+                self.gnss_fixes += 1
+            else:
+                self.gnss_invalid += 1
+
+    def add_row(self, row: AssembledRow) -> None:
+        """Count what the assembler noted on one 50 Hz row (stuck-sensor episodes)."""
+        for index in row.newly_frozen:
+            self.signal_frozen[index] += 1
 
     @property
     def used(self) -> int:

@@ -66,9 +66,12 @@ def test_quality_bit_invalidates_at_once_and_never_received_is_invalid():
 
 def test_out_of_order_frames_apply_only_when_newer_than_the_held_value():
     stats = FrameStats()
-    asm = Assembler(RATES, stats=stats)
-    feed(asm, [upd(0.0, {0: 1.0, 1: 1.0}), upd(0.03, {0: 3.0}), upd(0.041, {2: 0.0})])  # rows at 0, 0.02, 0.04
-    st, rows = asm.step(upd(0.025, {0: 2.5, 1: 2.5}))  # late: older than the row at 0.04
+    asm = Assembler(RATES)
+    for f in [upd(0.0, {0: 1.0, 1: 1.0}), upd(0.03, {0: 3.0}), upd(0.041, {2: 0.0})]:  # rows at 0, 0.02, 0.04
+        stats.add_frame(asm.step(f)[0], f)
+    late = upd(0.025, {0: 2.5, 1: 2.5})  # late: older than the row at 0.04
+    st, rows = asm.step(late)
+    stats.add_frame(st, late)
     assert st is FrameStatus.USED and rows == []  # signal 1 was older, so it is applied
     assert stats.late_applied == 1 and stats.signal_late[0] == 1
     st, _ = asm.step(upd(0.01, {0: 9.0}))  # older than everything held for signal 0

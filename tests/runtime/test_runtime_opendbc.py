@@ -50,12 +50,13 @@ def test_frames_encoded_with_the_real_dbc_decode_to_the_drive(tmp_path, shared_d
     info = encode_drive_to_log(drive, tmp_path / "d.log", signal_map_path=shipped_map_path(name),
                                dbc_path=dbc_path(shared_dir, name))
     stats = FrameStats()
-    dec = FrameDecoder(smap, db, stats)
-    asm = Assembler.for_map(smap, stats=stats)
+    dec = FrameDecoder(smap, db)
+    asm = Assembler.for_map(smap)
     rows = []
     for msg in can.LogReader(str(tmp_path / "d.log")):
-        status, emitted = asm.step(dec.step(msg))
-        stats.count(status)
+        decoded = dec.step(msg)
+        status, emitted = asm.step(decoded)
+        stats.add_frame(status, decoded)
         rows += emitted
     rows += asm.flush()
     assert stats.received == info["frames"] == stats.used and stats.balanced()
