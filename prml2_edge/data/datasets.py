@@ -10,11 +10,17 @@ On disk a dataset is a folder::
 "std": [9]}, "drives": [{"file": "drives/dry_000.csv", "family": ..., "mu": ...,
 "seed": ..., "role": "dry" | "snow", "minutes": ...}]}``.
 
-Splits (method.md "Data"): every dry drive is cut 70:10:20 into train/validation/test
-in time order; snow (low-mu) drives are only for testing generalisation. The
-normalisation statistics come from the training split only and are stored in the
-manifest. A folder of real ReV-StED CSVs without a manifest loads too: every file is a
-dry drive unless its ``.meta.json`` sidecar says ``"snow": true``.
+Splits. A recipe drive may name its split (``"split": "train" | "val" | "test"``): the
+whole drive is in it, so no test drive shares a drive (and its sensor offsets) with training.
+A drive without one is cut 70:10:20 into train/validation/test in time order (method.md
+"Data"; the only choice for a single real drive). Snow (low-mu) drives are only for testing
+generalisation (split ``snow``). Each drive has a ``vehicle`` (a car of the simulated fleet,
+:mod:`prml2_edge.data.simulate.fleet`); the recipe's ``heldout`` vehicles are in none of
+train/val/test/snow: their test drives are split ``heldout``, and :meth:`Dataset.for_vehicle`
+gives their own train/val/test for fine-tuning. The normalisation statistics come from the
+training split only and are stored in the manifest. A folder of real ReV-StED CSVs without a
+manifest loads too: every file is a dry drive unless its ``.meta.json`` sidecar says
+``"snow": true``.
 """
 
 from __future__ import annotations
@@ -31,27 +37,49 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.data.revsted import Drive, load_drive, write_drive_csv
+from prml2_edge.data.simulate.fleet import get_car
 from prml2_edge.errors import ConfigError, DataError, reject_unknown_keys
 from prml2_edge.progress import Progress
 
 FORMAT = "prml2-dataset/1"
 SPLITS = ("train", "val", "test")
 SPLIT_FRACTIONS = (0.7, 0.1, 0.2)
-_DRIVE_KEYS = {"name", "family", "mu", "seed", "minutes", "role", "sensor_errors"}
+_DRIVE_KEYS = {"name", "family", "mu", "seed", "minutes", "role", "sensor_errors", "vehicle", "split"}
+FLEET = ("reference", "compact_fwd", "city_fwd", "rwd_sedan", "van_fwd")  # the benchmark's training fleet
+HELDOUT = ("suv_awd",)  # the benchmark's held-out car: never in train/val/test/snow
 
 
 def _benchmark_recipe() -> dict:
-    """~2 h of dry/normal drives mixing the families, ~40 min of snow at mu 0.2-0.5."""
+    """Five cars with their own train/val/test drives and a snow drive each; a sixth car held out.
+
+    Per fleet car: 3 x 6 min training drives (one per family), a 4 min validation drive, two 5.5 min
+    test drives (10 dry 60 s windows), a 7 min snow drive (6 windows): 50 dry and 30 snow test
+    windows. Held-out car: 2 x 4 min to fine-tune on, 3 min validation, 3 x 5.5 min test.
+    """
+    rng = np.random.default_rng(20261201)
     drives = []
-    families = ("longitudinal", "lateral", "mixed")
-    rng = np.random.default_rng(20240529)
-    for i in range(12):  # 12 x 10 min = 2 h
-        drives.append({"name": f"dry_{i:03d}", "family": families[i % 3], "mu": round(float(rng.uniform(0.8, 1.0)), 3),
-                       "seed": 1000 + i, "minutes": 10.0, "role": "dry"})
-    for i, mu in enumerate((0.2, 0.3, 0.4, 0.5)):  # 4 x 10 min = 40 min
-        drives.append({"name": f"snow_{i:03d}", "family": "snow", "mu": mu, "seed": 2000 + i, "minutes": 10.0,
-                       "role": "snow"})
-    return {"name": "benchmark", "drives": drives}
+
+    def add(vehicle: str, split: str, family: str, minutes: float, k: int, mu: float | None = None) -> None:
+        role = "snow" if family == "snow" else "dry"
+        mu = round(float(rng.uniform(0.8, 1.0)), 3) if mu is None else mu
+        drives.append({"name": f"{vehicle}_{split}_{k}", "vehicle": vehicle, "split": split, "family": family,
+                       "mu": mu, "seed": 3000 + len(drives), "minutes": minutes, "role": role})
+
+    snow_mu = (0.2, 0.3, 0.4, 0.5, 0.35)
+    for i, car in enumerate(FLEET):
+        for k, family in enumerate(("longitudinal", "lateral", "mixed")):
+            add(car, "train", family, 6.0, k)
+        add(car, "val", "mixed", 4.0, 0)
+        add(car, "test", "mixed", 5.5, 0)
+        add(car, "test", ("longitudinal", "lateral")[i % 2], 5.5, 1)
+        add(car, "snow", "snow", 7.0, 0, mu=snow_mu[i])
+    for car in HELDOUT:
+        add(car, "train", "mixed", 4.0, 0)
+        add(car, "train", "lateral", 4.0, 1)
+        add(car, "val", "mixed", 3.0, 0)
+        for k, family in enumerate(("mixed", "longitudinal", "lateral")):
+            add(car, "test", family, 5.5, k)
+    return {"name": "benchmark", "heldout": list(HELDOUT), "drives": drives}
 
 
 def _small_recipe() -> dict:
@@ -84,13 +112,24 @@ def resolve_recipe(recipe: str | dict) -> dict:
         if role not in ("dry", "snow"):
             raise ConfigError(f"recipe drive {i}: role must be 'dry' or 'snow', got {role!r}")
         drives.append({"name": d.get("name", f"{role}_{i:03d}"), "family": d["family"], "mu": float(d["mu"]),
-                       "seed": int(d["seed"]), "minutes": float(d["minutes"]), "role": role})
+                       "seed": int(d["seed"]), "minutes": float(d["minutes"]), "role": role,
+                       "vehicle": str(d.get("vehicle", "reference"))})
+        get_car(drives[-1]["vehicle"])  # a one-line error naming the fleet
+        if "split" in d:
+            allowed = ("snow",) if role == "snow" else SPLITS
+            if d["split"] not in allowed:
+                raise ConfigError(f"recipe drive {i}: split must be one of {', '.join(allowed)} for a {role} drive, "
+                                  f"got {d['split']!r}")
+            drives[-1]["split"] = d["split"]
         if d.get("sensor_errors"):
             drives[-1]["sensor_errors"] = dict(d["sensor_errors"])
     names = [d["name"] for d in drives]
     if len(set(names)) != len(names):
         raise ConfigError("recipe drive names must be unique")
-    return {"name": str(recipe.get("name", "custom")), "drives": drives}
+    heldout = [str(v) for v in recipe.get("heldout", [])]
+    for v in heldout:
+        get_car(v)
+    return {"name": str(recipe.get("name", "custom")), "heldout": heldout, "drives": drives}
 
 
 def _simulate_to_csv(spec: dict, path: str) -> str:
@@ -98,7 +137,7 @@ def _simulate_to_csv(spec: dict, path: str) -> str:
     from prml2_edge.data.simulate import simulate_drive
 
     drive = simulate_drive(spec["minutes"], spec["mu"], spec["seed"], spec["family"], name=spec["name"],
-                           sensor_errors=spec.get("sensor_errors"))
+                           sensor_errors=spec.get("sensor_errors"), vehicle=spec.get("vehicle", "reference"))
     drive.meta["role"] = spec["role"]
     write_drive_csv(drive, path)
     return path
@@ -142,6 +181,9 @@ def normalisation_stats(drives: list[Drive]) -> tuple[np.ndarray, np.ndarray]:
     return mean, std
 
 
+EVAL_SPLITS = (*SPLITS, "snow", "heldout")
+
+
 @dataclass
 class Dataset:
     """A loaded dataset: drives, manifest and the training split's normalisation statistics (9,)."""
@@ -157,18 +199,69 @@ class Dataset:
     def roles(self) -> list[str]:
         return [d.get("role", "dry") for d in self.manifest["drives"]]
 
-    def split(self, name: str) -> list[Drive]:
-        """``train``/``val``/``test``: 70:10:20 of each dry drive in time order; ``snow``: whole snow drives."""
-        if name not in (*SPLITS, "snow"):
-            raise ValueError(f"unknown split {name!r}; one of train, val, test, snow")
-        if name not in self._splits:
-            roles = self.roles()
-            if name == "snow":
-                self._splits[name] = [d for d, r in zip(self.drives, roles, strict=True) if r == "snow"]
+    @property
+    def heldout(self) -> list[str]:
+        """Vehicles held out of train/val/test/snow (their test drives are split ``heldout``)."""
+        return list(self.manifest.get("recipe", {}).get("heldout", []))
+
+    def vehicles(self) -> list[str]:
+        """The vehicle of each drive (``reference`` where the manifest names none)."""
+        return [d.get("vehicle", "reference") for d in self.manifest["drives"]]
+
+    def segments(self, name: str) -> list[tuple[Drive, int, int]]:
+        """``(drive, start, stop)`` sample ranges of split ``name`` (one of :data:`EVAL_SPLITS`).
+
+        ``train``/``val``/``test``: the dry drives recorded with that split, whole, and 70:10:20 of
+        each dry drive recorded without one; ``snow``: whole snow drives; ``heldout``: the test
+        drives of the held-out vehicles. Held-out vehicles are in no other split.
+        """
+        if name not in EVAL_SPLITS:
+            raise ValueError(f"unknown split {name!r}; one of {', '.join(EVAL_SPLITS)}")
+        heldout = set(self.heldout)
+        out = []
+        for drive, entry in zip(self.drives, self.manifest["drives"], strict=True):
+            role, vehicle, own = entry.get("role", "dry"), entry.get("vehicle", "reference"), entry.get("split")
+            if (name == "heldout") != (vehicle in heldout):
+                continue
+            if name == "snow" or (name == "heldout" and role == "snow"):
+                if role == "snow" and name == "snow":
+                    out.append((drive, 0, len(drive)))
+                continue
+            if role != "dry":
+                continue
+            want = "test" if name == "heldout" else name
+            if own is not None:
+                if own == want:
+                    out.append((drive, 0, len(drive)))
             else:
-                self._splits[name] = [split_drive(d)[name] for d, r in zip(self.drives, roles, strict=True)
-                                      if r == "dry"]
+                a, b = split_drive(drive)[want].meta["slice"]
+                out.append((drive, int(a), int(b)))
+        return out
+
+    def split(self, name: str) -> list[Drive]:
+        """The drives (or parts) of split ``name`` (see :meth:`segments`)."""
+        if name not in self._splits:
+            parts = []
+            for drive, a, b in self.segments(name):
+                part = drive if (a, b) == (0, len(drive)) else drive.slice(a, b)
+                if part is not drive:
+                    part.name = f"{drive.name}:{name}"
+                    part.meta["split"] = name
+                parts.append(part)
+            self._splits[name] = parts
         return self._splits[name]
+
+    def for_vehicle(self, vehicle: str) -> Dataset:
+        """The drives of one vehicle only, as their own dataset (held out or not): its train/val/test are
+        that car's (fine-tuning on a new car); the normalisation statistics stay this dataset's."""
+        keep = [i for i, v in enumerate(self.vehicles()) if v == vehicle]
+        if not keep:
+            raise DataError(f"{self.root}: no drives of vehicle {vehicle!r}; vehicles here: "
+                            f"{', '.join(sorted(set(self.vehicles())))}")
+        manifest = {**self.manifest, "drives": [self.manifest["drives"][i] for i in keep],
+                    "recipe": {**self.manifest.get("recipe", {}), "heldout": []}, "vehicle_view": vehicle}
+        return Dataset(self.root, manifest, [self.drives[i] for i in keep], self.norm_mean, self.norm_std,
+                       self.fingerprint)
 
 
 def generate_dataset(out_dir: str | Path, recipe: str | dict = "benchmark", workers: int = 2,
@@ -221,9 +314,13 @@ def generate_dataset(out_dir: str | Path, recipe: str | dict = "benchmark", work
     finally:
         bar.close()
     drives = [load_drive(p) for p in paths]
-    roles = [s["role"] for s in specs]
-    train = [split_drive(d)["train"] for d, r in zip(drives, roles, strict=True) if r == "dry"]
-    mean, std = normalisation_stats(train)
+    entries = [{"file": f"drives/{p.name}", "name": s["name"], "family": s["family"], "mu": s["mu"],
+                "seed": s["seed"], "minutes": s["minutes"], "role": s["role"], "vehicle": s["vehicle"],
+                **({"split": s["split"]} if "split" in s else {})} for s, p in zip(specs, paths, strict=True)]
+    view = Dataset(out, {"recipe": rec, "drives": entries}, drives, np.zeros(schema.NUM_SIGNALS),
+                   np.ones(schema.NUM_SIGNALS), "")
+    mean, std = normalisation_stats(view.split("train"))
+    vehicles = sorted({s["vehicle"] for s in specs})
     manifest = {
         "format": FORMAT,
         "recipe": rec,
@@ -232,9 +329,8 @@ def generate_dataset(out_dir: str | Path, recipe: str | dict = "benchmark", work
         "fingerprint": fingerprint_files(paths),
         "split_fractions": list(SPLIT_FRACTIONS),
         "norm": {"mean": mean.tolist(), "std": std.tolist(), "from": "train split of the dry drives"},
-        "drives": [{"file": f"drives/{p.name}", "name": s["name"], "family": s["family"], "mu": s["mu"],
-                    "seed": s["seed"], "minutes": s["minutes"], "role": s["role"]}
-                   for s, p in zip(specs, paths, strict=True)],
+        "vehicles": {v: get_car(v).as_dict() for v in vehicles},
+        "drives": entries,
     }
     (out / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
     return out

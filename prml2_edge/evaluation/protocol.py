@@ -113,7 +113,7 @@ class WindowResult(DeadReckoningErrors):
 
 def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: int = schema.WINDOW_LEN,
                 max_windows: int | None = None, preroll_s: float = 0.0) -> list[WindowTask]:
-    """Non-overlapping dead-reckoning windows of ``split`` (``val``, ``test`` or ``snow``).
+    """Non-overlapping dead-reckoning windows of ``split`` (``val``, ``test``, ``snow`` or ``heldout``).
 
     A window needs ``window_len - 1`` rows of history before its start; the first window of a
     segment starts at ``max(segment start, window_len - 1)``. ``max_windows`` caps the count
@@ -121,22 +121,12 @@ def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: 
     by that much GNSS-aided driving, whose rows (and history before them) may reach back before
     the segment (onboard signals a car would have had; their ground truth only makes the fixes).
     """
-    from prml2_edge.data.datasets import split_drive
-
     steps = int(round(window_s / schema.DT_S))
     pre = int(round(preroll_s / schema.DT_S))
     hist = window_len - 1
     tasks: list[WindowTask] = []
-    for drive, role in zip(dataset.drives, dataset.roles(), strict=True):
+    for drive, a, b in dataset.segments(split):
         if not drive.has_ground_truth:
-            continue
-        if split == "snow":
-            if role != "snow":
-                continue
-            a, b = 0, len(drive)
-        elif role == "dry":
-            a, b = (int(v) for v in split_drive(drive)[split].meta["slice"])
-        else:
             continue
         mu = float(drive.meta.get("mu", 1.0))
         starts = list(range(max(a, hist + pre), b - steps + 1, steps))

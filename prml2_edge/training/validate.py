@@ -181,27 +181,14 @@ class Segment:
 
 
 def split_segments(dataset, split: str) -> list[Segment]:
-    """The evaluation segments of a split: the time-ordered 70:10:20 parts of each dry drive (``train``,
-    ``val``, ``test``) or whole snow drives (``snow``); ``mu`` from each drive's metadata (1.0 if absent).
+    """The evaluation segments of a split (:meth:`prml2_edge.data.datasets.Dataset.segments`); ``mu`` from
+    each drive's metadata (1.0 if absent).
 
     Streaming needs L - 1 samples of history: a part that does not start its drive takes them
     from the samples before it (onboard signals only, as a live system would have them).
     """
-    from prml2_edge.data.datasets import split_drive
-
-    roles = dataset.roles()
-    segments = []
-    for drive, role in zip(dataset.drives, roles, strict=True):
-        if not drive.has_ground_truth:
-            continue
-        mu = float(drive.meta.get("mu", 1.0))
-        if split == "snow":
-            if role == "snow":
-                segments.append(Segment(drive, 0, len(drive), mu))
-        elif role == "dry":
-            a, b = split_drive(drive)[split].meta["slice"]
-            segments.append(Segment(drive, int(a), int(b), mu))
-    return segments
+    return [Segment(drive, a, b, float(drive.meta.get("mu", 1.0))) for drive, a, b in dataset.segments(split)
+            if drive.has_ground_truth]
 
 
 def evaluate_segments(model: Prml2Model, segments: list[Segment], *, stride: int = 1, mu: float | None = None,

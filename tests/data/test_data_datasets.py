@@ -79,11 +79,22 @@ def test_folder_of_csvs_without_manifest(tiny_dir, tmp_path):
 
 def test_recipes():
     bench = resolve_recipe("benchmark")
-    dry = sum(d["minutes"] for d in bench["drives"] if d["role"] == "dry")
-    snow = [d for d in bench["drives"] if d["role"] == "snow"]
-    assert 110 <= dry <= 130 and 35 <= sum(d["minutes"] for d in snow) <= 45
+    drives = bench["drives"]
+    snow = [d for d in drives if d["role"] == "snow"]
     assert all(0.2 <= d["mu"] <= 0.5 and d["family"] == "snow" for d in snow)
-    assert {d["family"] for d in bench["drives"] if d["role"] == "dry"} == {"longitudinal", "lateral", "mixed"}
+    assert {d["family"] for d in drives if d["role"] == "dry"} == {"longitudinal", "lateral", "mixed"}
+    # a fleet of >= 5 cars and one held out; every drive in one split (no drive shared by train and test)
+    fleet = {d["vehicle"] for d in drives} - set(bench["heldout"])
+    assert len(fleet) >= 5 and len(bench["heldout"]) == 1 and all("split" in d for d in drives)
+    for car in fleet:
+        assert {d["split"] for d in drives if d["vehicle"] == car} == {"train", "val", "test", "snow"}
+    # >= 45 dry and >= 30 snow 60 s test windows (5 s of history before the first)
+    def windows(ds):
+        return sum(int((d["minutes"] * 60 - 5) // 60) for d in ds)
+    assert windows(d for d in drives if d["split"] == "test" and d["vehicle"] in fleet) >= 45
+    assert windows(snow) >= 30
+    held_train = sum(d["minutes"] for d in drives if d["vehicle"] in bench["heldout"] and d["split"] == "train")
+    assert held_train <= 10
     with pytest.raises(ConfigError, match="unknown recipe"):
         resolve_recipe("huge")
     with pytest.raises(ConfigError, match="unknown key 'speed'"):

@@ -12,18 +12,21 @@ import numpy as np
 from prml2_edge import schema
 from prml2_edge.data.revsted import Drive
 from prml2_edge.data.simulate.driver import FAMILIES, DriverPlan, plan_drive
-from prml2_edge.data.simulate.sensors import SensorErrors, onboard_signals
+from prml2_edge.data.simulate.fleet import CARS, Car, get_car
+from prml2_edge.data.simulate.sensors import SensorErrors, SensorProfile, onboard_signals
 from prml2_edge.data.simulate.vehicle import VehicleParams, VehicleTrace, simulate_vehicle
 from prml2_edge.errors import ConfigError
 from prml2_edge.progress import Progress
 
-__all__ = ["FAMILIES", "DriverPlan", "SensorErrors", "VehicleParams", "VehicleTrace", "simulate_drive"]
+__all__ = ["CARS", "FAMILIES", "Car", "DriverPlan", "SensorErrors", "SensorProfile", "VehicleParams", "VehicleTrace",
+           "get_car", "simulate_drive"]
 
 SNOW_MU_RANGE = (0.2, 0.5)
 
 
 def simulate_drive(minutes: float, mu: float, seed: int, family: str = "mixed", name: str | None = None,
-                   progress: bool = False, sensor_errors: dict | None = None) -> Drive:
+                   progress: bool = False, sensor_errors: dict | None = None,
+                   vehicle: str | Car = "reference") -> Drive:
     """Simulate one drive and return it with ground truth.
 
     Parameters
@@ -44,6 +47,8 @@ def simulate_drive(minutes: float, mu: float, seed: int, family: str = "mixed", 
         Fields of :class:`SensorErrors` to set instead of drawing them (known offsets for
         calibration tests), e.g. ``{"yaw_offset_radps": -0.007}``; ``wheel_radius_error`` may be one
         number (all four wheels).
+    vehicle : str or Car
+        A car of the simulated fleet (:data:`CARS`; default ``reference``, the ReV-StED-like car).
 
     Returns
     -------
@@ -61,7 +66,8 @@ def simulate_drive(minutes: float, mu: float, seed: int, family: str = "mixed", 
     if n < 2:
         raise ConfigError(f"--minutes {minutes} gives fewer than 2 samples")
     rng = np.random.default_rng([int(seed), 0x50524D4C])  # "PRML"
-    params = VehicleParams()
+    car = vehicle if isinstance(vehicle, Car) else get_car(vehicle)
+    params = car.params
     plan = plan_drive(n, mu, family, rng, params)
     psi0 = float(rng.uniform(-np.pi, np.pi))
     bar = Progress(n, desc=f"simulate {name or family}", unit="samples", enabled=None if progress else False)
@@ -70,15 +76,16 @@ def simulate_drive(minutes: float, mu: float, seed: int, family: str = "mixed", 
                                  free_steer=plan.free_steer, progress_cb=bar.update)
     finally:
         bar.close()
-    errors = SensorErrors.draw(rng)
+    errors = SensorErrors.draw(rng, car.sensors)
     if sensor_errors:
         errors = errors.with_overrides(sensor_errors)
-    onboard, errors = onboard_signals(trace, params, rng, errors)
+    onboard, errors = onboard_signals(trace, params, rng, errors, car.sensors)
     z_gt = np.stack([trace.v_x, trace.v_y, trace.a_x, trace.a_y, trace.r], axis=1)
     pose = np.stack([trace.x, trace.y, trace.psi], axis=1)
     meta = {
         "source": "prml2 simulator",
         "family": family,
+        "vehicle": car.name,
         "mu": float(mu),
         "seed": int(seed),
         "snow": family == "snow" or mu <= schema.LOW_MU_THRESHOLD,

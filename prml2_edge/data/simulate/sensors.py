@@ -1,7 +1,9 @@
 """Onboard sensor model: the 9 signals of o_t as a production car's ECUs report them.
 
 Parameters come from the real onboard profile measured on ``OBD_Sample.csv``
-(method.md "Onboard sensor profile"; ``benchmarks/sensor_profile.py`` reproduces it):
+(method.md "Onboard sensor profile"; ``benchmarks/sensor_profile.py`` reproduces it); a car
+of the simulated fleet (:mod:`prml2_edge.data.simulate.fleet`) may change them through its
+:class:`SensorProfile` (resolutions of its own ECUs, speedometer factor):
 
 * quantisation steps: :data:`schema.SIGNALS` ``revsted_step`` (0.05 km/h wheel speeds,
   0.0625 km/h speedometer, 0.481 deg steering, 1.28 deg/s yaw rate, 0.075 m/s^2 lateral
@@ -10,8 +12,9 @@ Parameters come from the real onboard profile measured on ``OBD_Sample.csv``
   25 Hz speedometer holds every value for two 50 Hz samples);
 * speedometer: a low-passed front-axle speed times 1.02-1.06 plus 0.1-0.5 km/h (the
   sample reads 5 % above the wheel speeds; 75/443/EEC: never below true speed);
-* per-drive offsets: yaw rate (sigma 0.25 deg/s), lateral acceleration (0.12 m/s^2),
-  steering (1.5 deg), brake pressure baseline 0.2-1.5 bar (the sample idles at ~1 bar);
+* per-drive offsets: yaw rate (sigma 0.05 deg/s: what the ESC's own offset compensation
+  leaves, see :class:`SensorProfile`), lateral acceleration (0.12 m/s^2), steering (1.5 deg),
+  brake pressure baseline 0.2-1.5 bar (the sample idles at ~1 bar);
 * per-wheel rolling-radius errors (sigma 0.4 %) and longitudinal slip from the tyre
   forces (magic-formula inverse), wheel speeds from the axle kinematics (inner and
   outer wheels differ in turns; front wheels steer);
@@ -36,6 +39,37 @@ _DEG = schema.DEG_TO_RAD
 
 
 @dataclass(frozen=True)
+class SensorProfile:
+    """What a car's sensors are like: resolutions and the spread of the per-drive errors.
+
+    The defaults are the ReV-StED reference car's (``OBD_Sample.csv``). ``steps`` overrides the
+    quantisation step of some signals [SI] (schema ``revsted_step`` otherwise): production ECUs
+    differ (yaw rate 1.28 deg/s in ReV-StED, 0.244 deg/s on a Toyota RAV4, 0.01 deg/s on VW MQB
+    and Hyundai; opendbc DBCs).
+
+    ``yaw_offset_dps`` is the spread of the yaw-rate offset left on the CAN value. ESC units
+    compensate their yaw sensor's offset themselves (at standstill and when driving straight),
+    so what reaches the bus is a few hundredths of a deg/s. With 0.25 deg/s (this simulator
+    before) the offset hid under the 1.28 deg/s quantisation at standstill, no standstill
+    calibration could see it, and the OSD baseline drifted six times more than on real drives
+    (``benchmarks/sim_realism.py`` measures each choice).
+    """
+
+    steps: tuple[tuple[str, float], ...] = ()  # (canonical signal name, step [SI])
+    yaw_offset_dps: float = 0.05
+    speedo_factor: tuple[float, float] = (1.02, 1.06)
+    wheel_radius_sigma: float = 0.004
+    brake_baseline_bar: tuple[float, float] = (0.2, 1.5)
+    yaw_scale_sigma: float = 0.01  # yaw-rate gain error (MEMS scale-factor tolerance)
+    yaw_drift_dps: float = 0.02  # offset instability: Gauss-Markov sigma [deg/s] ...
+    yaw_drift_tau_s: float = 200.0  # ... and correlation time [s] (temperature, ageing)
+
+    def step(self, sig) -> float:
+        """Quantisation step of canonical signal ``sig`` (a ``schema.Signal``) [SI]."""
+        return dict(self.steps).get(sig.name, sig.revsted_step)
+
+
+@dataclass(frozen=True)
 class SensorErrors:
     """Per-drive sensor imperfections (drawn once per drive)."""
 
@@ -47,18 +81,21 @@ class SensorErrors:
     brake_baseline_bar: float
     wheel_radius_error: tuple[float, float, float, float]  # fl, fr, rl, rr, relative
     hold_phase: int  # phase of the speedometer's 25 Hz refresh
+    yaw_scale_error: float = 0.0  # relative gain error of the yaw-rate sensor
 
     @staticmethod
-    def draw(rng: np.random.Generator) -> SensorErrors:
+    def draw(rng: np.random.Generator, profile: SensorProfile | None = None) -> SensorErrors:
+        p = profile or SensorProfile()
         return SensorErrors(
-            speedo_factor=float(rng.uniform(1.02, 1.06)),
+            speedo_factor=float(rng.uniform(*p.speedo_factor)),
             speedo_offset_mps=float(rng.uniform(0.1, 0.5)) * _KMH,
-            yaw_offset_radps=float(rng.normal(0.0, 0.25)) * _DEG,
+            yaw_offset_radps=float(rng.normal(0.0, p.yaw_offset_dps)) * _DEG,
             lat_offset_mps2=float(rng.normal(0.0, 0.12)),
             steer_offset_rad=float(rng.normal(0.0, 1.5)) * _DEG,
-            brake_baseline_bar=float(rng.uniform(0.2, 1.5)),
-            wheel_radius_error=tuple(float(e) for e in rng.normal(0.0, 0.004, 4)),
+            brake_baseline_bar=float(rng.uniform(*p.brake_baseline_bar)),
+            wheel_radius_error=tuple(float(e) for e in rng.normal(0.0, p.wheel_radius_sigma, 4)),
             hold_phase=int(rng.integers(0, 2)),
+            yaw_scale_error=float(rng.normal(0.0, p.yaw_scale_sigma)),
         )
 
     def as_dict(self) -> dict:
@@ -116,6 +153,21 @@ def lowpass(x: np.ndarray, tau_s: float, dt_s: float = schema.DT_S) -> np.ndarra
     return np.asarray(out, dtype=x.dtype)
 
 
+def gauss_markov(rng: np.random.Generator, n: int, sigma: float, tau_s: float, dt_s: float = schema.DT_S) -> np.ndarray:
+    """(n,) first-order Gauss-Markov process of stationary std ``sigma``, starting at 0 (calibrated)."""
+    if sigma <= 0.0 or n == 0:
+        return np.zeros(n)
+    a = math.exp(-dt_s / tau_s)
+    w = rng.normal(0.0, sigma * math.sqrt(1.0 - a * a), n)
+    w[0] = 0.0
+    out = np.empty(n)
+    acc = 0.0
+    for i, v in enumerate(w.tolist()):
+        acc = a * acc + v
+        out[i] = acc
+    return out
+
+
 def quantise(x: np.ndarray, step: float) -> np.ndarray:
     """Round to the nearest multiple of ``step`` (same unit as x)."""
     return np.round(x / step) * step
@@ -154,12 +206,14 @@ def true_wheel_speeds(trace: VehicleTrace, params: VehicleParams) -> np.ndarray:
 
 
 def onboard_signals(trace: VehicleTrace, params: VehicleParams, rng: np.random.Generator,
-                    errors: SensorErrors | None = None) -> tuple[np.ndarray, SensorErrors]:
+                    errors: SensorErrors | None = None, profile: SensorProfile | None = None
+                    ) -> tuple[np.ndarray, SensorErrors]:
     """The onboard vector o_t (N, 9), canonical order, SI, as the car's sensors report it.
 
     Returns the signals and the drawn per-drive :class:`SensorErrors`.
     """
-    errors = errors or SensorErrors.draw(rng)
+    profile = profile or SensorProfile()
+    errors = errors or SensorErrors.draw(rng, profile)
     n = len(trace.v_x)
     clean = np.zeros((n, schema.NUM_SIGNALS))
     wheels = true_wheel_speeds(trace, params)
@@ -170,7 +224,8 @@ def onboard_signals(trace: VehicleTrace, params: VehicleParams, rng: np.random.G
     speedo = np.where(front > 0.05, front * errors.speedo_factor + errors.speedo_offset_mps, 0.0)
     clean[:, _IDX["speedometer_mps"]] = speedo
     clean[:, _IDX["steering_wheel_angle_rad"]] = trace.delta * params.steering_ratio + errors.steer_offset_rad
-    clean[:, _IDX["yaw_rate_radps"]] = trace.r + errors.yaw_offset_radps
+    drift = gauss_markov(rng, n, profile.yaw_drift_dps * _DEG, profile.yaw_drift_tau_s)
+    clean[:, _IDX["yaw_rate_radps"]] = trace.r * (1.0 + errors.yaw_scale_error) + errors.yaw_offset_radps + drift
     clean[:, _IDX["lat_accel_mps2"]] = trace.a_y + errors.lat_offset_mps2
     clean[:, _IDX["brake_pressure_bar"]] = trace.brake_force_n / params.brake_gain_n_per_bar + errors.brake_baseline_bar
 
@@ -182,5 +237,5 @@ def onboard_signals(trace: VehicleTrace, params: VehicleParams, rng: np.random.G
             x = np.where(clean[:, sig.index] < WHEEL_DROPOUT_MPS, 0.0, np.maximum(x, 0.0))
         period = max(1, int(round(schema.SAMPLE_RATE_HZ / sig.rate_hz)))
         x = sample_and_hold(x, period, errors.hold_phase if period > 1 else 0)
-        out[:, sig.index] = np.clip(quantise(x, sig.revsted_step), sig.min, sig.max)
+        out[:, sig.index] = np.clip(quantise(x, profile.step(sig)), sig.min, sig.max)
     return out, errors

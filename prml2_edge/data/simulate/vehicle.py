@@ -3,9 +3,9 @@
 States (vehicle frame at the COG, x forward, y left; world frame x east, y north):
 ``v_x`` [m/s], ``v_y`` [m/s], ``r`` yaw rate [rad/s, ccw], ``x``/``y`` [m], ``psi``
 [rad, ccw from east]. Inputs: front wheel steer angle ``delta`` [rad] and the driver's
-longitudinal acceleration demand [m/s^2], turned into drive (front-wheel drive) or
-brake forces (front/rear split) and limited per wheel by the friction ellipse
-(traction control / ABS).
+longitudinal acceleration demand [m/s^2], turned into drive forces (front-, rear- or
+all-wheel drive: :attr:`VehicleParams.drivetrain`) or brake forces (front/rear split)
+and limited per wheel by the friction ellipse (traction control / ABS).
 
 Per wheel (fl, fr, rl, rr) the normal load includes longitudinal and lateral load
 transfer (from the previous step's accelerations); the lateral force is a Pacejka
@@ -57,6 +57,17 @@ class VehicleParams:
     drag_coeff_n_per_m2s2: float = 0.40  # 0.5 rho Cd A
     rolling_coeff: float = 0.012
     engine_brake_n: float = 250.0  # coasting force before the brakes are used
+    drivetrain: str = "fwd"  # "fwd", "rwd" or "awd" (drive and engine-brake force split by drive_front_share)
+    awd_front_share: float = 0.6  # AWD: share of the drive force on the front axle
+
+    def __post_init__(self) -> None:
+        if self.drivetrain not in ("fwd", "rwd", "awd"):
+            raise ValueError(f"drivetrain must be 'fwd', 'rwd' or 'awd', got {self.drivetrain!r}")
+
+    @property
+    def drive_front_share(self) -> float:
+        """Share of the drive (and engine-brake) force on the front axle."""
+        return {"fwd": 1.0, "rwd": 0.0, "awd": self.awd_front_share}[self.drivetrain]
 
     @property
     def wheelbase_m(self) -> float:
@@ -215,6 +226,7 @@ def _dynamics(p: VehicleParams, mu: float):
     h = p.cog_height_m
     fz0_f, fz0_r, b_f, b_r, ks_f, ks_r = _axle_constants(p, mu)
     c_lat, e_lat, ls = p.mf_c_lat, p.mf_e_lat, p.load_sensitivity
+    drive_f = p.drive_front_share
 
     def wheel_fy(alpha: float, fz: float, fx: float, b: float, fz0: float) -> float:
         mu_i = mu * (1.0 - ls * (fz - fz0) / fz0)
@@ -239,13 +251,13 @@ def _dynamics(p: VehicleParams, mu: float):
         f_dem = m * ax_dem + resist
         brake = 0.0
         if f_dem >= 0.0:
-            fx_f = f_dem
-            fx_r = 0.0
+            fx_f = drive_f * f_dem
+            fx_r = (1.0 - drive_f) * f_dem
         else:
             brake = max(0.0, -f_dem - p.engine_brake_n)
             eng = min(-f_dem, p.engine_brake_n)
-            fx_f = -eng - p.brake_front_share * brake
-            fx_r = -(1.0 - p.brake_front_share) * brake
+            fx_f = -drive_f * eng - p.brake_front_share * brake
+            fx_r = -(1.0 - drive_f) * eng - (1.0 - p.brake_front_share) * brake
         lim_f = 0.95 * mu * (fz_fl + fz_fr)
         lim_r = 0.95 * mu * (fz_rl + fz_rr)
         fx_f = max(-lim_f, min(lim_f, fx_f))
