@@ -16,13 +16,16 @@ FAMILIES = ("longitudinal", "lateral", "mixed", "snow")  # mirrors prml2_edge.da
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="output folder (becomes a dataset: drives/*.csv + manifest.json)")
-    parser.add_argument("--recipe", help="write a whole dataset: 'benchmark' (~2 h dry + 40 min snow) or 'small'")
+    parser.add_argument("--recipe", help="write a whole dataset: 'benchmark' (a fleet of 5 cars with their own "
+                        "train/val/test/snow drives and a held-out 6th car; ~3.8 h) or 'small'")
     parser.add_argument("--minutes", type=float, default=5.0, help="duration of a single drive [min] (default 5)")
     parser.add_argument("--mu", type=float, default=1.0, help="friction coefficient (1.0 dry; snow 0.2-0.5)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (same seed, same drive)")
     parser.add_argument("--family", choices=FAMILIES, default=None,
                         help="manoeuvre family (default: mixed, or snow when mu <= 0.5)")
     parser.add_argument("--name", default=None, help="drive name (default sim_<family>_s<seed>)")
+    parser.add_argument("--vehicle", default="reference",
+                        help="single drive: car of the simulated fleet (default reference; see README 'Benchmark')")
     parser.add_argument("--workers", type=int, default=2, help="worker processes for --recipe (default 2)")
     parser.add_argument("--yaw-offset-dps", type=float, default=None, metavar="DEG_S",
                         help="single drive: this CAN yaw-rate offset [deg/s] instead of a random one")
@@ -53,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
         if args.wheel_scale_pct is not None:
             errors["wheel_radius_error"] = args.wheel_scale_pct / 100.0
         drive_spec = {"name": name, "family": family, "mu": args.mu, "seed": args.seed, "minutes": args.minutes,
-                      "role": role}
+                      "role": role, "vehicle": args.vehicle}
         if errors:
             drive_spec["sensor_errors"] = errors
         recipe = {"name": "single", "drives": [drive_spec]}

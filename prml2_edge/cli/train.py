@@ -53,7 +53,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, help="random seed (weights and shuffling)")
     parser.add_argument("--threads", type=int, help="torch CPU threads per process (default 2)")
     parser.add_argument("--max-train-windows", type=int, help="use at most this many training windows per epoch")
+    parser.add_argument("--pretrain-physics", type=float, metavar="LAMBDA",
+                        help="add LAMBDA x (acceleration consistency + jerk) to the pretraining NLL, as the "
+                             "authors' public code does with 0.5 (default 0: the paper's loss)")
+    parser.add_argument("--pretrain-frac", type=float, metavar="F",
+                        help="share of the epochs spent pretraining (default 0.7, the paper; the authors' code 0.8)")
+    parser.add_argument("--beta", type=float, help="fine-tuning position-loss scale (default 8, the paper; "
+                                                   "the authors' code 10)")
     parser.add_argument("--resume", metavar="CKPT", help="continue a run from its last.pt (same options)")
+    parser.add_argument("--init", metavar="MODEL",
+                        help="transfer to a new car: start from this trained model (a best.pt checkpoint or a "
+                             "'prml2 export' .onnx, e.g. the shipped one) with its config and input statistics, "
+                             "and train it on --data (a few minutes of the new car's drives with reference data)")
+    parser.add_argument("--vehicle", metavar="NAME",
+                        help="train on this vehicle's drives of --data only (its own train/val splits, also a "
+                             "held-out car's; e.g. --vehicle suv_awd on the benchmark)")
     parser.add_argument("--eval-stride", type=int, default=1,
                         help="streaming stride [samples] of the final validation (default 1)")
     parser.add_argument("--no-eval", action="store_true",
@@ -71,10 +85,10 @@ def _run_baseline(args: argparse.Namespace) -> int:
     from prml2_edge.training.trainer import prepare_data
 
     t0 = time.monotonic()
-    if args.resume or args.no_finetune:
+    if args.resume or args.no_finetune or args.init:
         from prml2_edge.errors import ConfigError
 
-        raise ConfigError("--resume and --no-finetune apply to --model prml2 only")
+        raise ConfigError("--resume, --init and --no-finetune apply to --model prml2 only")
     preset = get_preset(args.preset)
     train_cfg = with_overrides(preset.train, {"window_stride": args.window_stride})
     tcfg = BaselineTrainConfig(epochs=6, max_train_windows=4096, lr=2e-3, num_threads=1)
@@ -83,6 +97,8 @@ def _run_baseline(args: argparse.Namespace) -> int:
                                               "max_train_windows": args.max_train_windows}.items() if v is not None})
     cfg = BaselineConfig(kind=args.model, hidden=args.hidden)
     dataset = load_dataset(args.data)
+    if args.vehicle:
+        dataset = dataset.for_vehicle(args.vehicle)
     data = prepare_data(dataset, preset.model, train_cfg)
     print(f"prml2 train: baseline {args.model} (hidden {args.hidden}), {tcfg.epochs} epochs of at most "
           f"{tcfg.max_train_windows or len(data.train)} of {len(data.train)} training windows, dataset "
@@ -93,6 +109,17 @@ def _run_baseline(args: argparse.Namespace) -> int:
     Path(args.out, "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True, default=str))
     print(f"done in {summary['total_wall_s'] / 60:.1f} min: {best} (export it with 'prml2 export --checkpoint')")
     return 0
+
+
+def _initial_model(path: str):
+    """The model ``--init`` names: a training checkpoint or an exported .onnx (weights read back from the graph)."""
+    if str(path).endswith(".onnx"):
+        from prml2_edge.training.export_onnx import model_from_onnx
+
+        return model_from_onnx(path)[0]
+    from prml2_edge.training.checkpoint import load_model
+
+    return load_model(path)[0]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -109,18 +136,27 @@ def run(args: argparse.Namespace) -> int:
 
     t0 = time.monotonic()
     preset = get_preset(args.preset)
+    if args.init and args.resume:
+        from prml2_edge.errors import ConfigError
+
+        raise ConfigError("--init starts a new run from a trained model; --resume continues one: give one of them")
     train_cfg = with_overrides(preset.train, {
         "epochs": args.epochs, "batch_size": args.batch_size, "lr": args.lr, "window_stride": args.window_stride,
         "seed": args.seed, "num_threads": args.threads, "max_train_windows": args.max_train_windows,
         "finetune": False if args.no_finetune else None, "nll_reduction": args.nll_reduction,
-        "ft_horizon_s": args.ft_horizon,
+        "ft_horizon_s": args.ft_horizon, "pretrain_physics": args.pretrain_physics,
+        "pretrain_frac": args.pretrain_frac, "beta": args.beta,
     })
     train_cfg.validate()
     torch.set_num_threads(train_cfg.num_threads)
     info = ddp.init()
     try:
         dataset = load_dataset(args.data)
-        data = prepare_data(dataset, preset.model, train_cfg)
+        if args.vehicle:
+            dataset = dataset.for_vehicle(args.vehicle)
+        init = _initial_model(args.init) if args.init else None
+        model_cfg = init.cfg if init is not None else preset.model
+        data = prepare_data(dataset, model_cfg, train_cfg)
         if info.is_main:
             stages = (f"{train_cfg.pretrain_epochs()} pretraining + {train_cfg.epochs - train_cfg.pretrain_epochs()} "
                       "fine-tuning" if train_cfg.finetune else f"{train_cfg.epochs} pretraining (PRML2*)")
@@ -134,11 +170,12 @@ def run(args: argparse.Namespace) -> int:
                   f"{pos} | v_x {r['val_rmse_v_x_mps']:.3f} m/s, w_z {r['val_rmse_omega_z_radps']:.4f} rad/s"
                   f" | {r['train_windows_per_s']:.0f} win/s, {r['epoch_time_s']:.0f} s{' *best' if r['best'] else ''}")
 
-        result = fit(data, args.out, preset=preset.name, model_cfg=preset.model, train_cfg=train_cfg,
-                     resume=args.resume, info=info, on_epoch=on_epoch)
+        result = fit(data, args.out, preset=preset.name, model_cfg=model_cfg, train_cfg=train_cfg,
+                     resume=args.resume, info=info, on_epoch=on_epoch, init=init)
         summary: dict = {
             "preset": preset.name, "data": str(args.data), "dataset_fingerprint": dataset.fingerprint,
-            "train_config": asdict(train_cfg), "model_config": asdict(preset.model),
+            "train_config": asdict(train_cfg), "model_config": asdict(model_cfg), "init": args.init,
+            "vehicle": args.vehicle,
             "world_size": info.world_size, "train_wall_s": result.wall_s, "counters": result.counters,
         }
         if info.is_main and not args.no_eval:

@@ -140,6 +140,8 @@ def _task_sets(dataset, data, window_s: float, max_windows: int | None, snow: bo
     sets["snow"] = split_tasks(dataset, "snow", window_s, max_windows=max_windows) if snow else []
     sets["deployment"] = split_tasks(dataset, "test", window_s, max_windows=max_windows, preroll_s=preroll_s) \
         if preroll_s > 0 else []
+    # a car no model was trained on (the benchmark's held-out vehicle): zero-shot, or after fine-tuning on its own
+    sets["heldout"] = split_tasks(dataset, "heldout", window_s, max_windows=max_windows) if dataset.heldout else []
     return sets
 
 
@@ -149,7 +151,7 @@ def _n_runs(specs: Sequence[ModelSpec], target: ModelSpec | None, sets: dict, ca
     n_osd = sum(s.kind == "osd" for s in specs)
     n_var = len(specs) * (2 if calibration == "both" else 1)
     return (n_val * (1 + len(OSD_Q_SCALES)) * n_osd + (n_val if target else 0)
-            + n_var * (len(sets["test"]) + len(sets["snow"]) + len(sets["deployment"]))
+            + n_var * (len(sets["test"]) + len(sets["snow"]) + len(sets["deployment"]) + len(sets["heldout"]))
             + (2 * len(sets["test"]) if target else 0))
 
 
@@ -169,20 +171,25 @@ def _ablation(target: ModelSpec, sets: dict, test_res: dict, stride: int, jobs: 
 
 def _metrics(data, dataset, stride: int, window_s: float, tuning: Tuning, tuned: Sequence[ModelSpec], sets: dict,
              results: dict, preroll_s: float) -> dict:
-    """The per-model tables of ``metrics.json`` (test, snow, deployment)."""
+    """The per-model tables of ``metrics.json`` (test, snow, deployment, heldout)."""
     test_sum = _summaries(results["test"], sets["test"])
     snow_sum = _summaries(results["snow"], sets["snow"]) if sets["snow"] else {}
+    held_sum = _summaries(results["heldout"], sets["heldout"]) if sets["heldout"] else {}
     metrics: dict = {
         "data": str(data), "dataset_fingerprint": dataset.fingerprint, "stride": stride,
         "window_s": window_s, "models": {}, "tuning": tuning.notes,
         "specs": {s.name: {"kind": s.kind, "path": s.path, "q_scale": s.q_scale, "calibration": s.calibration,
                            "const_var": list(s.const_var) if s.const_var else None} for s in tuned},
         "deployment_preroll_s": preroll_s if sets["deployment"] else None,
+        "heldout_vehicles": dataset.heldout,
+        "split_by_drive": all("split" in d for d in dataset.manifest["drives"]),
     }
     for s in tuned:
         metrics["models"][s.name] = {"test": test_sum[s.name]}
         if sets["snow"]:
             metrics["models"][s.name]["snow"] = snow_sum[s.name]
+        if sets["heldout"]:
+            metrics["models"][s.name]["heldout"] = held_sum[s.name]
         if sets["deployment"]:
             dep = results["deployment"][s.name]
             metrics["models"][s.name]["deployment"] = {"dead_reckoning_60s": dr_summary(dep),
@@ -193,7 +200,7 @@ def _metrics(data, dataset, stride: int, window_s: float, tuning: Tuning, tuned:
 def _paired(target: ModelSpec, tuned: Sequence[ModelSpec], results: dict) -> dict:
     """Table 2b: the reference against every other model, window by window, per split."""
     paired: dict = {"reference": target.name}
-    for split in ("test", "snow", "deployment"):
+    for split in ("test", "snow", "deployment", "heldout"):
         res = results[split]
         if res.get(target.name):
             paired[split] = {s.name: paired_comparison(res[target.name], res[s.name])
@@ -219,7 +226,7 @@ def _figures(out: Path, sets: dict, results: dict) -> list[str]:
 def _write_tum(out: Path, sets: dict, results: dict) -> None:
     from prml2_edge.evaluation.tum import write_tum
 
-    for split in ("test", "snow"):
+    for split in ("test", "snow", "heldout"):
         tasks = sets[split]
         by_key = {t.key: t for t in tasks}
         for t in tasks:

@@ -51,6 +51,20 @@ def nll_loss(mean: torch.Tensor, var: torch.Tensor, z_gt: torch.Tensor, z_std: t
     raise ValueError(f"reduction must be 'sum' or 'mean', got {reduction!r}")
 
 
+def physics_consistency_loss(mean: torch.Tensor, dt_s: float) -> torch.Tensor:
+    """The authors' pretraining regulariser: acceleration consistency + jerk, per window (B,) [SI].
+
+    ``mean`` (B, T, 5) guarded z [SI]. Consistency: the central difference of v_x, v_y against a_x,
+    a_y, squared, averaged over steps and times dt^2; jerk: squared step-to-step changes of a_x, a_y,
+    averaged. (They compare dv/dt with a directly, not with a + r v: a weak smoothness prior.)
+    """
+    v, a = mean[..., 0:2], mean[..., 2:4]
+    dv = (v[:, 2:] - v[:, :-2]) / (2.0 * dt_s)
+    consistency = ((dv - a[:, 1:-1]) ** 2).sum(-1).mean(-1) * dt_s * dt_s
+    jerk = ((a[:, 1:] - a[:, :-1]) ** 2).sum(-1).mean(-1)
+    return consistency + jerk
+
+
 def position_loss(d: torch.Tensor, d_gt: torch.Tensor, beta: float = 8.0, reduction: str = "sum") -> torch.Tensor:
     """beta * tanh(sum_t ||d_t - d_t^gt||^2 / beta) per window: ``d``, ``d_gt`` (B, T, 2) [m] -> (B,).
 

@@ -99,6 +99,10 @@ class TrainConfig:
     grad_clip: float = 10.0  # global grad-norm clip
     explode_ratio: float = 1e3  # a step whose grad norm exceeds this times the running (EMA) norm is skipped
     max_train_windows: int = 0  # 0: all; >0 subsample the training windows each epoch (deterministic)
+    # The authors' public code (not the paper) adds to the pretraining NLL lambda x an acceleration-consistency
+    # term (central-difference dv/dt against a, times dt^2) and lambda x a jerk term (consecutive a differences),
+    # in SI units, with lambda 0.5 each. 0: the paper's pretraining.
+    pretrain_physics: float = 0.0
 
     def pretrain_epochs(self) -> int:
         """Epochs of NLL pretraining: all of them for PRML2*, otherwise round(70 %)."""
@@ -129,6 +133,8 @@ class TrainConfig:
             raise ConfigError(f"nll_reduction must be 'sum' or 'mean', got {self.nll_reduction!r}")
         if self.ft_horizon_s < 0 or self.ft_rows < 1 or self.ft_segments < 1:
             raise ConfigError("ft_horizon_s must be >= 0, ft_rows and ft_segments >= 1")
+        if not (self.pretrain_physics >= 0):
+            raise ConfigError(f"pretrain_physics must be >= 0, got {self.pretrain_physics}")
         if self.lr_schedule not in ("cosine", "cosine_restart"):
             raise ConfigError(f"lr_schedule must be 'cosine' or 'cosine_restart', got {self.lr_schedule!r}")
 

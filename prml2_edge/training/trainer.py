@@ -47,7 +47,13 @@ from prml2_edge.progress import Progress
 from prml2_edge.training import distributed as ddp
 from prml2_edge.training.checkpoint import make_checkpoint, read_checkpoint, save_checkpoint
 from prml2_edge.training.guard_torch import PhysicsGuard
-from prml2_edge.training.losses import initial_state, nll_loss, position_loss, to_window_frame
+from prml2_edge.training.losses import (
+    initial_state,
+    nll_loss,
+    physics_consistency_loss,
+    position_loss,
+    to_window_frame,
+)
 from prml2_edge.training.model import Prml2Model
 from prml2_edge.training.presets import (
     ModelConfig,
@@ -258,6 +264,7 @@ def fit(
     info: ddp.DistInfo | None = None,
     progress: bool | None = None,
     on_epoch: Callable[[dict], None] | None = None,
+    init: Prml2Model | None = None,
 ) -> FitResult:
     """Train a PRML2 model on ``data``; write checkpoints, ``metrics.jsonl`` and ``loss_curve.png`` to ``out_dir``.
 
@@ -278,6 +285,10 @@ def fit(
         Show a progress bar (default: unless ``PRML2_NO_PROGRESS=1``).
     on_epoch
         Called with each epoch's log record (rank 0).
+    init
+        Start from this trained model (transfer to a new car, ``prml2 train --init``): its weights, its
+        config (``model_cfg`` must equal it) and its own normalisation statistics, which the data's do
+        not replace (the inputs keep the scale the model learned).
     """
     t_start = time.monotonic()
     info = info or ddp.DistInfo()
@@ -289,9 +300,14 @@ def fit(
     _check_data(data)
 
     torch.manual_seed(train_cfg.seed)
-    model = Prml2Model(model_cfg, data.norm_mean, data.norm_std, data.z_mean, data.z_std)
-    if data.skip_rows is not None:
-        model.init_skip(*data.skip_rows)
+    if init is not None:
+        if init.cfg != model_cfg:
+            raise ConfigError("fit(init=...): model_cfg must be the initial model's config")
+        model = init.train()
+    else:
+        model = Prml2Model(model_cfg, data.norm_mean, data.norm_std, data.z_mean, data.z_std)
+        if data.skip_rows is not None:
+            model.init_skip(*data.skip_rows)
     optimizer = torch.optim.Adam(model.parameters(), lr=train_cfg.lr, weight_decay=train_cfg.weight_decay)
     counters: dict[str, float] = {"steps": 0, "skipped_nonfinite": 0, "skipped_exploding": 0,
                                   "grad_log_ema": math.nan}
@@ -474,6 +490,8 @@ def _losses(loop: _Loop, data: TrainData, idx: np.ndarray, stage: str,
         pos_reduction, n_items = "sum", len(idx)
     nll = nll_loss(mean, var, z_gt, loop.model.z_std, cfg.nll_reduction)  # (b,)
     loss = nll.mean()
+    if stage == PRETRAIN and cfg.pretrain_physics > 0:
+        loss = loss + cfg.pretrain_physics * physics_consistency_loss(mean, schema.DT_S).mean().to(loss.dtype)
     pos = torch.zeros(())
     if stage == FINETUNE:  # the EKF from the ground truth at the first step of mean/var
         d = loop.filt.positions(mean, var, z_gt[:, 0])  # (b, L-H or seq_len, 2)
