@@ -122,3 +122,39 @@ def test_windows_never_cross_drive_boundaries():
     assert np.allclose(p[0], drives[0].pose_gt[:250])
     with pytest.raises(ValueError):
         build_windows(drives, L=100, H=100)
+
+
+FLEET = {"name": "fleet", "heldout": ["suv_awd"], "drives": [
+    {"name": "a_train", "vehicle": "reference", "split": "train", "family": "mixed", "mu": 1.0, "seed": 1,
+     "minutes": 0.4},
+    {"name": "b_train", "vehicle": "van_fwd", "split": "train", "family": "lateral", "mu": 1.0, "seed": 2,
+     "minutes": 0.3},
+    {"name": "a_val", "vehicle": "reference", "split": "val", "family": "mixed", "mu": 1.0, "seed": 3, "minutes": 0.3},
+    {"name": "b_test", "vehicle": "van_fwd", "split": "test", "family": "mixed", "mu": 1.0, "seed": 4, "minutes": 0.3},
+    {"name": "a_snow", "vehicle": "reference", "family": "snow", "mu": 0.3, "seed": 5, "minutes": 0.3},
+    {"name": "h_train", "vehicle": "suv_awd", "split": "train", "family": "mixed", "mu": 1.0, "seed": 6,
+     "minutes": 0.3},
+    {"name": "h_test", "vehicle": "suv_awd", "split": "test", "family": "mixed", "mu": 1.0, "seed": 7, "minutes": 0.3},
+    {"name": "old_style", "family": "mixed", "mu": 1.0, "seed": 8, "minutes": 0.5},  # no split: 70:10:20 in time
+]}
+
+
+def test_splits_by_drive_and_a_held_out_vehicle(tmp_path):
+    ds = load_dataset(generate_dataset(tmp_path / "fleet", FLEET, workers=1, progress=False))
+    names = {s: [d.name for d, _, _ in ds.segments(s)] for s in ("train", "val", "test", "snow", "heldout")}
+    assert names == {"train": ["a_train", "b_train", "old_style"], "val": ["a_val", "old_style"],
+                     "test": ["b_test", "old_style"], "snow": ["a_snow"], "heldout": ["h_test"]}
+    whole = [(a, b) == (0, len(d)) for d, a, b in ds.segments("train")]
+    assert whole == [True, True, False]  # the drive without a split is cut in time
+    assert set(ds.manifest["vehicles"]) == {"reference", "van_fwd", "suv_awd"}
+    assert ds.manifest["vehicles"]["suv_awd"]["params"]["drivetrain"] == "awd"
+    # the normalisation statistics come from the training split only, never from the held-out car
+    mean, _ = normalisation_stats(ds.split("train"))
+    assert np.allclose(ds.norm_mean, mean)
+    suv = ds.for_vehicle("suv_awd")
+    assert [d.name for d, _, _ in suv.segments("train")] == ["h_train"]
+    assert [d.name for d, _, _ in suv.segments("test")] == ["h_test"] and suv.segments("heldout") == []
+    with pytest.raises(DataError, match="no drives of vehicle 'golf'"):
+        ds.for_vehicle("golf")
+    with pytest.raises(ConfigError, match="split must be one of train, val, test"):
+        resolve_recipe({"drives": [{"family": "mixed", "mu": 1, "seed": 1, "minutes": 1, "split": "snow"}]})

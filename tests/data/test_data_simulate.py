@@ -102,3 +102,29 @@ def test_bad_arguments_raise_config_error():
         simulate_drive(1.0, 1.0, 0, family="drift")
     with pytest.raises(ConfigError, match="snow"):
         simulate_drive(1.0, 0.9, 0, family="snow")
+
+
+def test_fleet_cars_have_their_drivetrain_and_sensor_resolution():
+    from prml2_edge.data.simulate import CARS, get_car
+
+    assert len(CARS) >= 6 and {c.params.drivetrain for c in CARS.values()} == {"fwd", "rwd", "awd"}
+    idx = {s.name: s.index for s in schema.SIGNALS}
+
+    def drive_ratio(name):  # front / rear wheel speed while accelerating straight
+        d = simulate_drive(2.0, 1.0, seed=6, family="longitudinal", vehicle=name)
+        z, o = d.z_gt, d.onboard
+        acc = (z[:, 2] > 1.5) & (np.abs(z[:, 4]) < 0.05) & (z[:, 0] > 5)
+        assert acc.sum() > 20 and d.meta["vehicle"] == name
+        front = o[acc][:, [idx["wheel_speed_fl_mps"], idx["wheel_speed_fr_mps"]]].mean(axis=1)
+        rear = o[acc][:, [idx["wheel_speed_rl_mps"], idx["wheel_speed_rr_mps"]]].mean(axis=1)
+        return float(np.median(front / rear)), d
+
+    fwd, _ = drive_ratio("compact_fwd")
+    rwd, d_rwd = drive_ratio("rwd_sedan")
+    assert fwd > 1.003 and rwd < 0.997  # the driven axle slips
+    # the yaw rate is quantised at the car's own step (0.1 deg/s here, ReV-StED's 1.28 on the reference car)
+    step = get_car("rwd_sedan").sensors.step(schema.SIGNAL_BY_NAME["yaw_rate_radps"])
+    yaw = d_rwd.onboard[:, idx["yaw_rate_radps"]]
+    assert step == pytest.approx(np.radians(0.1)) and np.allclose(yaw / step, np.round(yaw / step), atol=1e-6)
+    with pytest.raises(ConfigError, match="unknown vehicle 'tesla'; the simulated fleet has reference"):
+        simulate_drive(0.1, 1.0, seed=1, vehicle="tesla")

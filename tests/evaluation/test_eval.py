@@ -172,3 +172,22 @@ def test_z_rmse_ignores_missing_components(tiny):
     z, n = z_rmse([res], [task])
     assert z["v_y_mps"] is None and z["a_x_mps2"] is None and z["v_x_mps"] is not None
     assert n == len(task.t_s)
+
+
+def test_noise_grid_is_extended_until_its_minimum_is_inside():
+    from prml2_edge.evaluation.protocol import _extend_grid
+
+    calls = []
+
+    def loss(q):  # minimum at q = 1000, past the top of the grid
+        calls.append(q)
+        return (np.log10(q) - 3.0) ** 2
+
+    scores = {q: loss(q) for q in (0.3, 1.0, 3.0, 10.0, 30.0, 100.0)}
+    best, inside = _extend_grid(scores, loss)
+    assert inside and best == pytest.approx(100.0 * (100 / 30) ** 2)  # 100 -> 333 -> 1111 (-> 3704, worse)
+    assert max(scores) > best and len(calls) > 6
+    flat = {q: 1.0 for q in (1.0, 10.0, 100.0)}
+    flat[1.0] = 0.5  # falls forever towards 0: extended MAX_GRID_EXTENSIONS times, then reported as not inside
+    best, inside = _extend_grid(flat, lambda q: 0.5 - 1.0 / (1.0 + q))
+    assert not inside and best == min(flat)

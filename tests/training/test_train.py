@@ -242,3 +242,39 @@ def test_long_horizon_finetuning_runs_the_filter_across_windows(toy_data, tmp_pa
     with pytest.raises(ConfigError, match="no training segment"):
         fit(toy_data, tmp_path / "long", preset="tiny", model_cfg=PRESET.model,
             train_cfg=replace(CFG, ft_horizon_s=60.0), progress=False)
+
+
+def test_init_starts_from_the_given_model_and_keeps_its_statistics(toy_data, tmp_path):
+    first = fit(toy_data, tmp_path / "first", preset="tiny", model_cfg=PRESET.model, train_cfg=CFG, progress=False)
+    init, _ = load_model(first.best_path)
+    start = {k: v.clone() for k, v in init.state_dict().items()}
+    other = replace(toy_data, norm_mean=toy_data.norm_mean + 1.0)  # a new car's data: its statistics are not used
+    cfg = replace(CFG, epochs=1, finetune=False, lr=1e-12)  # (almost) no step: the result is the initial model
+    result = fit(other, tmp_path / "ft", preset="tiny", model_cfg=PRESET.model, train_cfg=cfg, progress=False,
+                 init=init)
+    tuned = result.model.state_dict()
+    assert torch.allclose(tuned["in_mean"], start["in_mean"]) and not torch.allclose(
+        tuned["in_mean"], torch.as_tensor(other.norm_mean, dtype=tuned["in_mean"].dtype))
+    assert all(torch.allclose(tuned[k], start[k], atol=1e-6) for k in start)
+    with pytest.raises(ConfigError, match="initial model's config"):
+        fit(toy_data, tmp_path / "bad", preset="tiny", model_cfg=replace(PRESET.model, d_model=32), train_cfg=cfg,
+            progress=False, init=init)
+
+
+def test_pretrain_physics_terms_penalise_inconsistent_and_jerky_predictions():
+    from prml2_edge.training.losses import physics_consistency_loss
+
+    t = torch.arange(50, dtype=torch.float64) * schema.DT_S
+    z = torch.zeros(1, 50, 5, dtype=torch.float64)
+    z[0, :, 0], z[0, :, 2] = 10.0 + 2.0 * t, 2.0  # v_x grows at exactly a_x
+    assert float(physics_consistency_loss(z, schema.DT_S)) == pytest.approx(0.0, abs=1e-12)
+    wrong = z.clone()
+    wrong[0, :, 2] = 0.0  # a_x disagrees with dv_x/dt
+    jerky = z.clone()
+    jerky[0, ::2, 3] = 1.0  # a_y alternating 0 / 1 m/s^2
+    assert float(physics_consistency_loss(wrong, schema.DT_S)) == pytest.approx(4.0 * schema.DT_S**2, rel=1e-6)
+    assert float(physics_consistency_loss(jerky, schema.DT_S)) > 0.9
+    cfg = replace(CFG, epochs=1, pretrain_physics=0.5)
+    cfg.validate()
+    with pytest.raises(ConfigError, match="pretrain_physics"):
+        replace(CFG, pretrain_physics=-1.0).validate()
