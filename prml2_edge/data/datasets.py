@@ -273,8 +273,9 @@ def generate_dataset(out_dir: str | Path, recipe: str | dict = "benchmark", work
     out_dir : str or Path
         Target folder (created). Existing drive files of the same names are overwritten.
     recipe : str or dict
-        ``"benchmark"`` (~2 h dry/normal + ~40 min snow), ``"small"`` (a few minutes) or a
-        dict ``{"name": ..., "drives": [{"family", "mu", "seed", "minutes", "role"?, "name"?}]}``.
+        ``"benchmark"`` (a fleet of 5 cars with their own train/val/test/snow drives and a held-out
+        sixth car, 3.8 h), ``"small"`` (a few minutes) or a dict ``{"name": ..., "heldout"?: [cars],
+        "drives": [{"family", "mu", "seed", "minutes", "role"?, "name"?, "vehicle"?, "split"?}]}``.
     workers : int
         Worker processes (1 = in this process).
     progress : bool
