@@ -106,7 +106,7 @@ def evaluate(data: str | Path, specs: Sequence[ModelSpec], out_dir: str | Path, 
         metrics["paired"] = _paired(target, tuned, results)
     metrics["figures"] = _figures(out, sets, results) if plots else []
     if tum:
-        _write_tum(out, sets, results)
+        metrics["tum_windows"] = _write_tum(out, sets, results)
         metrics["tum_dir"] = "tum/"
     metrics["wall_s"] = round(time.monotonic() - t0, 1)
     from prml2_edge.evaluation.report import write_report
@@ -235,9 +235,12 @@ def _figures(out: Path, sets: dict, results: dict) -> list[str]:
     return figures
 
 
-def _write_tum(out: Path, sets: dict, results: dict) -> None:
+def _write_tum(out: Path, sets: dict, results: dict) -> dict[str, list[dict]]:
+    """TUM files of every window (estimate per model, ground truth) under ``out/tum``; returns their index
+    per model: the files and each window's position RMSE as the report computes it (what evo_ape should give)."""
     from prml2_edge.evaluation.tum import write_tum
 
+    index: dict[str, list[dict]] = {}
     for split in ("test", "snow"):
         tasks = sets[split]
         by_key = {t.key: t for t in tasks}
@@ -246,7 +249,11 @@ def _write_tum(out: Path, sets: dict, results: dict) -> None:
         for name, res in results[split].items():
             for r in res:
                 task = by_key[r.task_key]
-                write_tum(out / "tum" / _safe(name) / _tum_name(task), task.t_s, r.pose)
+                path = write_tum(out / "tum" / _safe(name) / _tum_name(task), task.t_s, r.pose)
+                index.setdefault(name, []).append({
+                    "window": r.task_key, "estimate": path.relative_to(out).as_posix(),
+                    "groundtruth": f"tum/groundtruth/{_tum_name(task)}", "rmse_m": r.rmse_m})
+    return index
 
 
 CALIBRATION_CHOICES = ("off", "on", "both")
