@@ -34,11 +34,21 @@ def install_hint(extra: str) -> str:
 class MissingExtraError(Prml2Error):
     """An optional dependency (an extra) is not installed."""
 
-    def __init__(self, module: str, extra: str, command: str | None = None) -> None:
-        what = f"'prml2 {command}'" if command else "this feature"
+    def __init__(self, module: str, extra: str, command: str | None = None, what: str | None = None) -> None:
+        what = what or (f"'prml2 {command}'" if command else "this feature")
         super().__init__(f"{what} needs {module}, which is not installed: {install_hint(extra)}")
         self.module = module
         self.extra = extra
+
+
+def require_extra(module: str, extra: str, what: str) -> None:
+    """Import ``module`` or raise the one-line :class:`MissingExtraError` saying that ``what`` needs ``extra``."""
+    import importlib
+
+    try:
+        importlib.import_module(module)
+    except ImportError as exc:
+        raise MissingExtraError(module, extra, what=what) from exc
 
 
 def reject_unknown_keys(data, known, message: str, error: type[Exception] = ConfigError, **fields) -> None:

@@ -11,7 +11,8 @@ NEEDS: tuple[tuple[str, str], ...] = ()
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from prml2_edge.cli.runtime_args import add_pipeline_arguments
 
-    parser.add_argument("log", metavar="LOG", help="CAN log: .log (candump), .asc, .blf, .trc, .csv (python-can)")
+    parser.add_argument("log", metavar="LOG",
+                        help="CAN log: .log (candump), .asc, .blf, .trc, .csv, .mf4 (ASAM MDF4, the mf4 extra)")
     parser.add_argument("--realtime", action="store_true", help="keep the log's original timing")
     parser.add_argument("--speed", type=float, default=1.0, help="playback speed factor with --realtime (default 1)")
     parser.add_argument("--can-out", metavar="PATH",
