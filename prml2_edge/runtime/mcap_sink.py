@@ -203,12 +203,13 @@ class McapSink:
             ns = round(out.t_s * 1e9)
             if not ns >= 0:
                 raise ValueError(f"step time {out.t_s} s cannot be an MCAP timestamp (must be >= 0)")
+            chunk_ns = round(self.chunk_s * 1e9)
             if self._chunk_end_ns is None:
-                self._chunk_end_ns = ns + round(self.chunk_s * 1e9)
-            elif ns >= self._chunk_end_ns:
+                self._chunk_end_ns = ns + chunk_ns
+            elif not self._chunk_end_ns - chunk_ns <= ns < self._chunk_end_ns:  # a second on, or the clock jumped
                 self._writer.flush()  # closes the chunk in progress
                 self._sync()
-                self._chunk_end_ns = ns + round(self.chunk_s * 1e9)
+                self._chunk_end_ns = ns + chunk_ns
             if out.gnss is not None:
                 self._gnss(out.gnss)
             stamp = _stamp(ns)
@@ -229,7 +230,7 @@ class McapSink:
                 **{k: bool(getattr(out, k)) for k in _FLAGS}, "outage_s": _num(out.outage_s),
                 "calibration": _named(CalState.NAMES, out.cal)})
             self.rows += 1
-        except (OSError, ValueError, TypeError) as exc:
+        except (OSError, ValueError, TypeError, OverflowError) as exc:
             self._failed(exc)
 
     def _pose(self, ns: int, stamp: dict, out: StepOutput) -> None:

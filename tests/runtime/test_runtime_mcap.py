@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import json
+import math
 import struct
 import subprocess
 import sys
 from collections import Counter, defaultdict
 
 import jsonschema
+import numpy as np
 import pytest
 import zstandard
 from mcap.exceptions import McapError
@@ -16,7 +18,9 @@ from mcap.reader import NonSeekingReader, make_reader
 from runtime_models import make_kinematic_model
 
 from prml2_edge.cli.main import main
-from prml2_edge.runtime.mcap_sink import SCHEMAS, TOPICS
+from prml2_edge.runtime.localizer import StepOutput
+from prml2_edge.runtime.mcap_sink import SCHEMAS, TOPICS, McapSink
+from prml2_edge.runtime.status import PoseStatus
 
 STEP_TOPICS = ("/dynamics", "/signals", "/status")  # every 50 Hz step
 POSE_TOPICS = ("/pose", "/tf", "/pose/covariance")  # every step with a pose
@@ -168,3 +172,24 @@ def test_mcap_to_a_folder_is_a_one_line_error(replayed, capsys, tmp_path):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and str(tmp_path) in err
 
+
+
+def _out(t_s: float) -> StepOutput:
+    return StepOutput(k=0, t_s=t_s, x=np.zeros(8), pos_std_m=1.0, yaw_std_rad=0.1, status=PoseStatus.DEAD_RECKONING,
+                      ekf_status=None, model_used=False, inferred=False, guard_fired=np.bool_(False),
+                      gnss_fused=False, gnss_outage=False, outage_s=math.nan, degraded=False, valid=np.ones(9, bool))
+
+
+def test_a_clock_jump_closes_the_chunk_and_bad_times_are_counted_not_raised(tmp_path):
+    sink = McapSink(tmp_path / "jump.mcap")
+    for k in range(75):  # 1.5 s: one chunk closed at 101 s, one open
+        sink.step(_out(100.0 + 0.02 * k))
+    assert sum(t == "/status" for _, t, _ in _read_tolerant(tmp_path / "jump.mcap")[0]) == 50
+    sink.step(_out(10.0))  # the CAN clock jumps back: the open chunk is closed and synced at once
+    assert sum(t == "/status" for _, t, _ in _read_tolerant(tmp_path / "jump.mcap")[0]) == 75
+    for bad in (math.nan, math.inf, -1.0):
+        sink.step(_out(bad))
+    assert sink.errors == 3 and str(tmp_path / "jump.mcap") in sink.last_error
+    sink.close()
+    got, complete = _read_tolerant(tmp_path / "jump.mcap")
+    assert complete and sink.rows == 76 and sum(t == "/status" for _, t, _ in got) == 76
