@@ -25,9 +25,11 @@ topic                schema                       what, when
 
 Log and publish times are the CAN frame times (the 50 Hz row time; a fix's own frame time) in
 nanoseconds. Messages go into zstd chunks of ``chunk_s`` seconds of drive time; each chunk is
-flushed and fsync'ed when it closes, so a file cut by a crash or a power cut is readable up to its
-last whole chunk (the header and schemas are synced before the first message). ``step`` never
-raises: write failures are counted in ``errors``, the first kept in ``last_error``.
+written to the file when it closes (a crashed process loses at most the open chunk) and fsync'ed
+right after by a background thread, so that a slow disk never stalls the 50 Hz loop and a power
+cut loses at most the open chunk and the one being synced (the header and schemas are synced before
+the first message). ``step`` never raises: write failures are counted in ``errors``, the first kept
+in ``last_error``.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -178,6 +181,9 @@ class McapSink:
         self._chunk_end_ns: int | None = None
         self._closed = False
         self._sync()  # header, schemas and channels are on disk before the first message
+        self._sync_due = threading.Event()
+        self._syncer = threading.Thread(target=self._sync_loop, name="prml2-mcap-fsync", daemon=True)
+        self._syncer.start()
 
     # ---- writing -------------------------------------------------------------------------------------------------
 
@@ -189,6 +195,18 @@ class McapSink:
     def _sync(self) -> None:
         self._f.flush()
         os.fsync(self._f.fileno())
+
+    def _sync_loop(self) -> None:
+        """Background thread: fsync the file after each chunk the writer closed (until :meth:`close`)."""
+        while True:
+            self._sync_due.wait()
+            self._sync_due.clear()
+            if self._closed:
+                return
+            try:
+                os.fsync(self._f.fileno())
+            except (OSError, ValueError) as exc:  # ValueError: closed meanwhile
+                self._failed(exc)
 
     def _add(self, topic: str, ns: int, msg: dict) -> None:
         self._seq[topic] += 1
@@ -207,8 +225,8 @@ class McapSink:
             if self._chunk_end_ns is None:
                 self._chunk_end_ns = ns + chunk_ns
             elif not self._chunk_end_ns - chunk_ns <= ns < self._chunk_end_ns:  # a second on, or the clock jumped
-                self._writer.flush()  # closes the chunk in progress
-                self._sync()
+                self._writer.flush()  # closes the chunk in progress and hands it to the OS
+                self._sync_due.set()  # ... and the background thread syncs it to the disk
                 self._chunk_end_ns = ns + chunk_ns
             if out.gnss is not None:
                 self._gnss(out.gnss)
@@ -267,6 +285,8 @@ class McapSink:
         if self._closed:
             return
         self._closed = True
+        self._sync_due.set()
+        self._syncer.join(timeout=10.0)
         try:
             self._writer.finish()
             self._sync()
