@@ -63,6 +63,7 @@ class SinksConfig:
     jsonl: str | None = None
     csv: str | None = None
     tum: str | None = None
+    mcap: str | None = None  # MCAP for Foxglove (runtime/mcap_sink.py)
     can_out: bool = False  # send PRML2_POSE / PRML2_DYNAMICS / PRML2_POSE_STD on the bus
     status_interval_s: float = 5.0  # periodic status line
 

@@ -26,17 +26,29 @@ class ModelError(Prml2Error):
     """A model or checkpoint is missing, corrupt or does not match the signal map."""
 
 
+def install_hint(extra: str) -> str:
+    """How to install the optional extra ``extra``, for one-line messages."""
+    return f"pip install -c constraints.txt '.[{extra}]' (from the repository root)"
+
+
 class MissingExtraError(Prml2Error):
     """An optional dependency (an extra) is not installed."""
 
-    def __init__(self, module: str, extra: str, command: str | None = None) -> None:
-        what = f"'prml2 {command}'" if command else "this feature"
-        super().__init__(
-            f"{what} needs {module}, which is not installed: "
-            f"pip install -c constraints.txt 'prml2-edge[{extra}]' (from the repository root)"
-        )
+    def __init__(self, module: str, extra: str, command: str | None = None, what: str | None = None) -> None:
+        what = what or (f"'prml2 {command}'" if command else "this feature")
+        super().__init__(f"{what} needs {module}, which is not installed: {install_hint(extra)}")
         self.module = module
         self.extra = extra
+
+
+def require_extra(module: str, extra: str, what: str) -> None:
+    """Import ``module`` or raise the one-line :class:`MissingExtraError` saying that ``what`` needs ``extra``."""
+    import importlib
+
+    try:
+        importlib.import_module(module)
+    except ImportError as exc:
+        raise MissingExtraError(module, extra, what=what) from exc
 
 
 def reject_unknown_keys(data, known, message: str, error: type[Exception] = ConfigError, **fields) -> None:

@@ -1,79 +1,68 @@
-"""A dependency-free progress bar for long work (simulation, training, replay, evaluation).
+"""Progress bars for long work (simulation, training, replay, evaluation), drawn by tqdm on stderr.
 
-Writes to stderr; redraws in place on a terminal and prints a line every ~10 % when
-stderr is not a TTY (CI logs, pipes). ``PRML2_NO_PROGRESS=1`` silences it.
+On a terminal tqdm redraws its bar in place. When the stream is not a terminal (a log file, a
+pipe, CI) it prints a plain line (tqdm's own meter text, no carriage return) at most every
+:data:`LINE_INTERVAL_S` seconds, and a last one when the work ends. ``PRML2_NO_PROGRESS=1``
+silences both.
 """
 
 from __future__ import annotations
 
 import os
 import sys
-import time
 from typing import TextIO
+
+from tqdm import tqdm
+
+LINE_INTERVAL_S = 30.0  # without a terminal: one line at most this often
+
+
+class _LineBar(tqdm):
+    """tqdm that writes one line per refresh instead of redrawing with ``\\r`` (for logs)."""
+
+    monitor_interval = 0  # no monitor thread: refreshes happen on update() only
+
+    def display(self, msg: str | None = None, pos: int | None = None) -> bool:
+        # close() with leave=False asks to clear the bar (msg ""): print the final meter instead
+        self.fp.write((str(self) if not msg else msg) + "\n")
+        self.fp.flush()
+        return False  # nothing to clear with "\r"
 
 
 class Progress:
-    """Progress over ``total`` units: ``update(n)``, ``set_postfix(text)``, ``close()``."""
+    """Progress over ``total`` units (None: unknown): ``update(n)``, ``set_postfix(text)``, ``close()``.
+
+    ``enabled`` None means "unless ``PRML2_NO_PROGRESS=1``"; ``stream`` defaults to stderr.
+    """
 
     def __init__(self, total: int | None, desc: str = "", unit: str = "it", stream: TextIO | None = None,
                  enabled: bool | None = None) -> None:
-        self.total = total
-        self.desc = desc
-        self.unit = unit
         self.stream = stream or sys.stderr
-        self.enabled = (os.environ.get("PRML2_NO_PROGRESS") != "1") if enabled is None else enabled
+        self.enabled = (os.environ.get("PRML2_NO_PROGRESS") != "1") if enabled is None else bool(enabled)
         self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
-        self.n = 0
-        self.postfix = ""
-        self._t0 = time.monotonic()
-        self._last_draw = 0.0
-        self._last_decile = -1
-        self._closed = False
+        common = {"total": total or None, "desc": desc, "unit": unit, "file": self.stream, "disable": not self.enabled,
+                  "dynamic_ncols": self.tty}
+        if self.tty:
+            self._bar: tqdm = tqdm(**common)
+        else:
+            self._bar = _LineBar(**common, mininterval=LINE_INTERVAL_S, maxinterval=1e9, leave=False, ascii=True)
+
+    @property
+    def n(self) -> int:
+        return int(self._bar.n)
+
+    @property
+    def total(self) -> int | None:
+        return self._bar.total
 
     def update(self, n: int = 1) -> None:
-        self.n += n
-        self._maybe_draw()
+        self._bar.update(n)
 
     def set_postfix(self, text: str) -> None:
-        self.postfix = text
-        self._maybe_draw()
-
-    def _line(self) -> str:
-        elapsed = time.monotonic() - self._t0
-        rate = self.n / elapsed if elapsed > 0 else 0.0
-        if self.total:
-            frac = min(1.0, self.n / self.total)
-            bar = "#" * int(frac * 24)
-            eta = (self.total - self.n) / rate if rate > 0 else 0.0
-            core = f"{self.desc} [{bar:<24}] {self.n}/{self.total} {self.unit} {rate:.1f}/s eta {eta:.0f}s"
-        else:
-            core = f"{self.desc} {self.n} {self.unit} {rate:.1f}/s"
-        return f"{core} {self.postfix}".rstrip()
-
-    def _maybe_draw(self, force: bool = False) -> None:
-        if not self.enabled or self._closed:
-            return
-        now = time.monotonic()
-        if self.tty:
-            if force or now - self._last_draw > 0.1:
-                self.stream.write("\r" + self._line()[:160].ljust(80))
-                self.stream.flush()
-                self._last_draw = now
-        else:
-            decile = int(10 * self.n / self.total) if self.total else int(now - self._t0) // 10
-            if force or decile > self._last_decile:
-                self._last_decile = decile
-                self.stream.write(self._line() + "\n")
-                self.stream.flush()
+        self._bar.set_postfix_str(text, refresh=False)
 
     def close(self) -> None:
-        if self._closed:
-            return
-        self._maybe_draw(force=True)
-        if self.enabled and self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
-        self._closed = True
+        self._bar.close()
 
     def __enter__(self) -> Progress:
         return self

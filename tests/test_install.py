@@ -1,4 +1,4 @@
-"""`pip install .` without extras in an empty venv: no torch, and the CLI works.
+"""`pip install '.[plot]'` (README command 1: the edge runtime and matplotlib) in an empty venv: no torch, CLI works.
 
 Slow (builds a wheel and installs the runtime's dependencies into a fresh venv), so it
 shares one venv per session with the torch-free demo test in the runtime suite.
@@ -21,7 +21,7 @@ def edge_venv(tmp_path_factory, repo_root) -> Path:
     venv.EnvBuilder(with_pip=True).create(env_dir)
     py = env_dir / "bin" / "python"
     proc = subprocess.run(
-        [str(py), "-m", "pip", "install", "-q", "-c", str(repo_root / "constraints.txt"), str(repo_root)],
+        [str(py), "-m", "pip", "install", "-q", "-c", str(repo_root / "constraints.txt"), f"{repo_root}[plot]"],
         capture_output=True, text=True, timeout=900,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -33,7 +33,7 @@ def test_runtime_install_has_no_torch_and_cli_works(edge_venv):
     listed = subprocess.run([str(py), "-m", "pip", "list", "--format=freeze"], capture_output=True, text=True)
     names = {line.split("==")[0].lower() for line in listed.stdout.splitlines()}
     assert "torch" not in names
-    assert {"numpy", "onnxruntime", "python-can", "cantools"} <= names
+    assert {"numpy", "onnxruntime", "python-can", "cantools", "tqdm", "matplotlib"} <= names
     proc = subprocess.run([str(edge_venv / "bin" / "prml2"), "--help"], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     proc = subprocess.run([str(edge_venv / "bin" / "prml2"), "train", "--help"], capture_output=True, text=True)
@@ -45,7 +45,7 @@ def test_runtime_install_has_no_torch_and_cli_works(edge_venv):
 
 
 def test_demo_runs_without_torch_after_plain_install(edge_venv, tmp_path):
-    """Issue 6: `pip install .` then `prml2 demo` (the README's first command) prints the report."""
+    """Issue 6: `pip install '.[plot]'` then `prml2 demo` (the README's first command) prints the report and plots."""
     env = {"PATH": str(edge_venv / "bin") + ":/usr/bin:/bin", "PRML2_NO_PROGRESS": "1", "HOME": str(tmp_path)}
     proc = subprocess.run([str(edge_venv / "bin" / "prml2"), "demo"], capture_output=True, text=True,
                           cwd=tmp_path, env=env, timeout=600)

@@ -8,7 +8,7 @@ fix frames (10 Hz) for the first seconds give the runtime its initial pose.
 
 The output format follows the file extension through python-can's writers
 (``can.Logger``): ``.log`` candump, ``.asc``, ``.blf``, ``.csv``, ``.trc`` (and ``.gz``
-compressed variants).
+compressed variants), ``.mf4`` (ASAM MDF4, with asammdf: the ``mf4`` extra).
 """
 
 from __future__ import annotations
@@ -23,11 +23,11 @@ import numpy as np
 from prml2_edge import schema
 from prml2_edge.can.checksum import checksum_function
 from prml2_edge.can.signal_map import SignalSpec, load_map_and_dbc, shipped_map_path
-from prml2_edge.errors import ConfigError
+from prml2_edge.errors import ConfigError, require_extra
 from prml2_edge.progress import Progress
 
 GNSS_RATE_HZ = 10.0
-_SUPPORTED = (".log", ".asc", ".blf", ".csv", ".trc")
+_SUPPORTED = (".log", ".asc", ".blf", ".csv", ".trc", ".mf4")  # .mf4: python-can's MF4Writer (asammdf)
 
 
 @dataclass
@@ -74,6 +74,8 @@ def _writer_for(out_path: Path) -> can.io.generic.MessageWriter:
     if ext not in _SUPPORTED:
         raise ConfigError(f"{out_path}: unsupported log format {ext or '(no extension)'!r}; "
                           f"use one of {', '.join(_SUPPORTED)} (optionally .gz)")
+    if ext == ".mf4":  # python-can's MF4 writer needs asammdf (the mf4 extra)
+        require_extra("asammdf", "mf4", f"{out_path}: an ASAM MDF4 log")
     out_path.parent.mkdir(parents=True, exist_ok=True)
     return can.Logger(str(out_path))
 

@@ -18,7 +18,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", metavar="PATH", help="ONNX model (default: the shipped model)")
     parser.add_argument("--stride", type=int, default=1, help="a new model window every N steps (default 1)")
     parser.add_argument("--threads", type=int, default=1, help="ONNX Runtime intra-op threads (default 1)")
-    parser.add_argument("--no-plot", action="store_true", help="skip the PNG")
+    parser.add_argument("--no-plot", action="store_true", help="skip the PNG (drawn with matplotlib, the plot extra)")
     parser.add_argument("--summary-json", metavar="PATH", help="write the summary and metrics as JSON")
 
 
@@ -61,6 +61,8 @@ def run(args: argparse.Namespace) -> int:
     print("latency per stage (this machine):")
     for line in result.latency_lines:
         print("  " + line)
+    if result.plot_note:
+        print(result.plot_note)
     print(f"files: {result.log_path} (replay it: prml2 replay {result.log_path}), {result.jsonl_path}"
           + (f", {result.plot_path}" if result.plot_path else ""))
     if args.summary_json:

@@ -1,7 +1,7 @@
 """``prml2 encode``: encode the onboard signals of a CSV drive into a CAN log with a DBC.
 
 ``prml2 encode CSV [--dbc F] [--map M] --out drive.log [--gnss-seconds S]``; the log
-format follows the extension (.log candump, .asc, .blf, .csv, .trc).
+format follows the extension (.log candump, .asc, .blf, .csv, .trc; .mf4 with the mf4 extra).
 """
 
 from __future__ import annotations
@@ -14,7 +14,8 @@ NEEDS: tuple[tuple[str, str], ...] = ()
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("csv", help="ReV-StED-schema CSV drive (simulated or recorded)")
-    parser.add_argument("--out", required=True, help="output CAN log: .log (candump), .asc, .blf, .csv or .trc")
+    parser.add_argument("--out", required=True,
+                        help="output CAN log: .log (candump), .asc, .blf, .csv, .trc, .mf4 (ASAM MDF4, the mf4 extra)")
     parser.add_argument("--dbc", default=None, help="DBC file (default: the one the signal map names)")
     parser.add_argument("--map", default=None, help="signal map TOML (default: the shipped prml2_onboard map)")
     parser.add_argument("--gnss-seconds", type=float, default=0.0,

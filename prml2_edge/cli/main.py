@@ -76,6 +76,8 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if debug else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s" if debug else "%(message)s",
     )
+    if not debug:  # asammdf (for .mf4 logs) imports numexpr, which logs its thread count at INFO
+        logging.getLogger("numexpr").setLevel(logging.WARNING)
     try:
         # A subcommand whose extra is missing says so in one line, even for --help.
         first = next((a for a in argv if not a.startswith("-")), None)

@@ -11,7 +11,8 @@ NEEDS: tuple[tuple[str, str], ...] = ()
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from prml2_edge.cli.runtime_args import add_pipeline_arguments
 
-    parser.add_argument("log", metavar="LOG", help="CAN log: .log (candump), .asc, .blf, .trc, .csv (python-can)")
+    parser.add_argument("log", metavar="LOG",
+                        help="CAN log: .log (candump), .asc, .blf, .trc, .csv, .mf4 (ASAM MDF4, the mf4 extra)")
     parser.add_argument("--realtime", action="store_true", help="keep the log's original timing")
     parser.add_argument("--speed", type=float, default=1.0, help="playback speed factor with --realtime (default 1)")
     parser.add_argument("--can-out", metavar="PATH",
@@ -20,6 +21,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="ReV-StED-schema CSV of the same drive with ground truth (e.g. the one prml2 encode "
                              "read): print the outage error, drift and how often the error lies inside the "
                              "reported 1/2/3-sigma ellipses")
+    parser.add_argument("--truth-tum", metavar="PATH",
+                        help="with --truth: write the ground truth at the replayed steps' times in TUM format, to "
+                             "score --tum with evo (evo_ape tum PATH pose.tum)")
     add_pipeline_arguments(parser)
 
 
@@ -27,13 +31,15 @@ def run(args: argparse.Namespace) -> int:
     import can
 
     from prml2_edge.cli.runtime_app import build_pipeline, config_from_args, report_run
-    from prml2_edge.errors import DataError
+    from prml2_edge.errors import ConfigError, DataError
     from prml2_edge.progress import Progress
     from prml2_edge.runtime.pipeline import run_source
     from prml2_edge.runtime.sinks import CanSink
     from prml2_edge.runtime.source import LogReplay, scan_log
 
     cfg = config_from_args(args)
+    if args.truth_tum and not args.truth:
+        raise ConfigError("--truth-tum needs --truth DRIVE.csv (the drive with the ground truth)")
     # A broken or cut-off log is still replayed up to the problem: every pose it yields is written,
     # then the problem is reported (one line, non-zero exit).
     n_frames, t_first, t_last, problem = scan_log(args.log)
@@ -69,6 +75,13 @@ def run(args: argparse.Namespace) -> int:
     if truth is not None:
         from prml2_edge.runtime.demo import compare_with_truth, truth_lines
 
-        summary["truth"] = compare_with_truth(memory.arrays(), truth)
+        arrays = memory.arrays()
+        summary["truth"] = compare_with_truth(arrays, truth)
         extra_lines = truth_lines(summary["truth"])
+        if args.truth_tum:
+            from prml2_edge.evaluation.tum import write_tum
+            from prml2_edge.runtime.demo import align_with_truth
+
+            true_pose, _, ok = align_with_truth(arrays, truth)
+            write_tum(args.truth_tum, arrays["t_s"][ok], true_pose[ok])
     return report_run(pipeline, summary, args.summary_json, extra_lines, error=error or problem)

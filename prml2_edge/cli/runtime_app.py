@@ -43,7 +43,7 @@ def config_from_args(args: argparse.Namespace) -> RuntimeConfig:
         model={"path": args.model, "threads": args.threads, "stride": args.stride, "providers": providers,
                "spinning": True if getattr(args, "spinning", False) else None},
         initial_pose=pose,
-        sinks={"jsonl": args.jsonl, "csv": args.csv, "tum": args.tum,
+        sinks={"jsonl": args.jsonl, "csv": args.csv, "tum": args.tum, "mcap": getattr(args, "mcap", None),
                "status_interval_s": getattr(args, "status_interval", None)},
         calibration={"file": getattr(args, "calibration", None),
                      "enabled": False if getattr(args, "no_calibration", False) else None},
@@ -70,6 +70,10 @@ def file_sinks(cfg: RuntimeConfig) -> list:
         sinks.append(CsvSink(cfg.sinks.csv))
     if cfg.sinks.tum:
         sinks.append(TumSink(cfg.sinks.tum))
+    if cfg.sinks.mcap:
+        from prml2_edge.runtime.mcap_sink import McapSink
+
+        sinks.append(McapSink(cfg.sinks.mcap))
     return sinks
 
 

@@ -37,4 +37,7 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     s.add_argument("--jsonl", metavar="PATH", help="write every 50 Hz step as JSON lines")
     s.add_argument("--csv", metavar="PATH", help="write every 50 Hz step as CSV")
     s.add_argument("--tum", metavar="PATH", help="write the trajectory in TUM format (timestamp x y z qx qy qz qw)")
+    s.add_argument("--mcap", metavar="FILE",
+                   help="write an MCAP file for Foxglove Studio: pose, transform, covariance, z with sigma, signals "
+                        "with validity, GNSS fixes, status and flags (readable up to its last 1 s chunk after a crash)")
     s.add_argument("--summary-json", metavar="PATH", help="write the end-of-run summary as JSON")

@@ -106,7 +106,7 @@ def evaluate(data: str | Path, specs: Sequence[ModelSpec], out_dir: str | Path, 
         metrics["paired"] = _paired(target, tuned, results)
     metrics["figures"] = _figures(out, sets, results) if plots else []
     if tum:
-        _write_tum(out, sets, results)
+        metrics["tum_windows"] = _write_tum(out, sets, results)
         metrics["tum_dir"] = "tum/"
     metrics["wall_s"] = round(time.monotonic() - t0, 1)
     from prml2_edge.evaluation.report import write_report
@@ -209,23 +209,45 @@ def _paired(target: ModelSpec, tuned: Sequence[ModelSpec], results: dict) -> dic
 
 
 def _figures(out: Path, sets: dict, results: dict) -> list[str]:
-    from prml2_edge.evaluation.plots import plot_drift, plot_error_histograms, plot_trajectories
+    """The evaluation's PNG figures (:mod:`prml2_edge.viz.plots`); none, with one line, without matplotlib."""
+    from prml2_edge import schema
+    from prml2_edge.evaluation.metrics import drift_curves, z_errors
+    from prml2_edge.viz import plots
 
+    if not plots.available():
+        log.warning(plots.missing_message("figures"))
+        return []
     test, snow_tasks = sets["test"], sets["snow"]
     test_res, snow_res = results["test"], results["snow"]
     examples = test[:: max(1, len(test) // 3)][:3] + snow_tasks[:1]
-    figures = [plot_trajectories(out / "trajectories.png", examples,
-                                 {k: v + snow_res.get(k, []) for k, v in test_res.items()}).name,
-               plot_drift(out / "drift_dry.png", test_res, "dry test").name]
+    by_model = {k: v + snow_res.get(k, []) for k, v in test_res.items()}
+    panels = []
+    for task in examples:
+        origin = task.pose_gt[0, :2]
+        estimates = {}
+        for name, res in by_model.items():
+            match = [r for r in res if r.task_key == task.key]
+            if match:
+                estimates[name] = match[0].pose[:, :2] - origin
+        panels.append({"title": f"{task.drive} ({task.split}) t0={task.t_s[0]:.0f} s",
+                       "truth": task.pose_gt[:, :2] - origin, "estimates": estimates})
+    figures = [plots.plot_trajectories(out / "trajectories.png", panels).name,
+               plots.plot_drift(out / "drift_dry.png", {k: drift_curves(v) for k, v in test_res.items() if v},
+                                "dry test").name]
     if snow_tasks:
-        figures.append(plot_drift(out / "drift_snow.png", snow_res, "snow").name)
-    figures.append(plot_error_histograms(out / "z_error_histograms.png", test_res, test).name)
+        figures.append(plots.plot_drift(out / "drift_snow.png", {k: drift_curves(v) for k, v in snow_res.items() if v},
+                                        "snow").name)
+    errors = {name: z_errors(res, test) for name, res in test_res.items() if res}
+    figures.append(plots.plot_error_histograms(out / "z_error_histograms.png", errors, schema.STATE_NAMES).name)
     return figures
 
 
-def _write_tum(out: Path, sets: dict, results: dict) -> None:
+def _write_tum(out: Path, sets: dict, results: dict) -> dict[str, list[dict]]:
+    """TUM files of every window (estimate per model, ground truth) under ``out/tum``; returns their index
+    per model: the files and each window's position RMSE as the report computes it (what evo_ape should give)."""
     from prml2_edge.evaluation.tum import write_tum
 
+    index: dict[str, list[dict]] = {}
     for split in ("test", "snow", "heldout"):
         tasks = sets[split]
         by_key = {t.key: t for t in tasks}
@@ -234,7 +256,11 @@ def _write_tum(out: Path, sets: dict, results: dict) -> None:
         for name, res in results[split].items():
             for r in res:
                 task = by_key[r.task_key]
-                write_tum(out / "tum" / _safe(name) / _tum_name(task), task.t_s, r.pose)
+                path = write_tum(out / "tum" / _safe(name) / _tum_name(task), task.t_s, r.pose)
+                index.setdefault(name, []).append({
+                    "window": r.task_key, "estimate": path.relative_to(out).as_posix(),
+                    "groundtruth": f"tum/groundtruth/{_tum_name(task)}", "rmse_m": r.rmse_m})
+    return index
 
 
 CALIBRATION_CHOICES = ("off", "on", "both")

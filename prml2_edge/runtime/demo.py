@@ -38,6 +38,7 @@ class DemoResult:
     gnss_seconds: float
     metrics: dict = field(default_factory=dict)
     latency_lines: list[str] = field(default_factory=list)  # LatencyRecorder.report_lines()
+    plot_note: str | None = None  # why no plot was drawn (matplotlib missing), one line
 
 
 def align_with_truth(arrays: dict[str, np.ndarray], drive) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -121,30 +122,27 @@ def run_demo(out_dir: str | Path, model: str | Path | None = None, seconds: floa
     t_s = arrays["t_s"]
     truth, estimate, ok = align_with_truth(arrays, drive)
     metrics = compare_with_truth(arrays, drive, drive.t_s[0] + gnss_seconds)
-    plot_path = None
+    plot_path = plot_note = None
     if plot:
-        plot_path = plot_trajectory(out_dir / "trajectory.png", estimate[ok, :2], truth[ok, :2],
-                                    t_s[ok] < drive.t_s[0] + gnss_seconds, metrics)
+        from prml2_edge.viz import plots
+
+        if plots.available():
+            plot_path = plot_trajectory(out_dir / "trajectory.png", estimate[ok, :2], truth[ok, :2],
+                                        t_s[ok] < drive.t_s[0] + gnss_seconds, metrics)
+        else:
+            plot_note = plots.missing_message(str(out_dir / "trajectory.png"))
     summary = pipeline.summary()
     summary["true_yaw_offset_dps"] = math.degrees(drive.meta["sensor_errors"]["yaw_offset_radps"])
     return DemoResult(log_path, jsonl_path, plot_path, summary, t_s, estimate, truth, gnss_seconds, metrics,
-                      pipeline.latency.report_lines())
+                      pipeline.latency.report_lines(), plot_note)
 
 
 def plot_trajectory(path: Path, est_xy: np.ndarray, gt_xy: np.ndarray, gnss_mask: np.ndarray,
                     metrics: dict) -> Path:
     """Ground truth vs estimate (GNSS-aided part and dead-reckoning part in their own colours) as PNG."""
-    from prml2_edge.viz.png import BLACK, BLUE, GREEN, ORANGE, RED, Series, line_plot
+    from prml2_edge.viz.plots import plot_demo_trajectory
 
-    last_fix = int(np.flatnonzero(gnss_mask)[-1]) if gnss_mask.any() else 0
-    series = [
-        Series(gt_xy[:, 0], gt_xy[:, 1], BLACK, "ground truth", 2),
-        Series(est_xy[: last_fix + 1, 0], est_xy[: last_fix + 1, 1], GREEN, "estimate, GNSS aided", 3),
-        Series(est_xy[last_fix:, 0], est_xy[last_fix:, 1], BLUE, "estimate, dead reckoning", 2),
-        Series(gt_xy[:1, 0], gt_xy[:1, 1], ORANGE, "start", 5, marker=True),
-        Series(est_xy[last_fix:last_fix + 1, 0], est_xy[last_fix:last_fix + 1, 1], RED, "GNSS lost", 5, marker=True),
-    ]
     rmse = metrics.get("rmse_m")
     title = "PRML2 demo" + (f": outage RMSE {rmse:.1f} m, drift {metrics.get('drift_pct', float('nan')):.1f} %"
                             if rmse is not None else "")
-    return line_plot(path, series, title=title, xlabel="x east [m]", ylabel="y north [m]", equal_aspect=True)
+    return plot_demo_trajectory(path, est_xy, gt_xy, gnss_mask, title)

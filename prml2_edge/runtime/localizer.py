@@ -129,6 +129,8 @@ class StepOutput:
     cal: np.ndarray | None = None  # (3,) calibration states (schema.CalState), when on
     cues_used: bool = False
     standstill: bool = False
+    signals: np.ndarray | None = None  # (9,) the row's onboard signals [SI], canonical order (as the model saw them)
+    gnss: GnssFix | None = None  # the GNSS fix that arrived in this row, valid or not (None: none arrived)
     # time spent in the model, the guard and the filter at this step [ns] (the pipeline records them)
     infer_ns: int = 0
     guard_ns: int = 0
@@ -274,6 +276,7 @@ class StreamingLocalizer:
         out = self._output(t_s, res.ekf_status, est, res.model_used, res.gnss_fused, valid, all_valid,
                            res.standstill)
         out.bus_silent = bus_silent
+        out.signals, out.gnss = values, gnss
         out.cues_used, out.standstill = res.cues_used, res.standstill
         out.infer_ns, out.guard_ns, out.filter_ns = est.infer_ns, est.guard_ns, filter_ns
         return out

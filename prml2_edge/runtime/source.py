@@ -2,7 +2,7 @@
 
 :func:`open_bus` opens any python-can interface by name (``socketcan``, ``pcan``, ``kvaser``,
 ``vector``, ``virtual``, ...). :class:`LogReplay` plays a log (``.log``, ``.asc``, ``.blf``,
-``.trc``, ``.csv``, ... whatever ``can.LogReader`` reads) into the *same* receive path the live
+``.trc``, ``.csv``, ``.mf4`` with asammdf, ... whatever ``can.LogReader`` reads) into the *same* receive path the live
 runtime uses: a feeder thread reads the file and sends every frame on a sender bus; the
 pipeline receives them on a second bus on the same unique virtual channel, timestamps
 preserved. ``max_in_flight`` bounds the frames between the two (backpressure, so a long log
@@ -12,7 +12,10 @@ once the feeder is done, so no frame is lost or left behind.
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import logging
+import sys
 import threading
 import time
 import uuid
@@ -20,7 +23,7 @@ from pathlib import Path
 
 import can
 
-from prml2_edge.errors import ConfigError, DataError, first_line
+from prml2_edge.errors import ConfigError, DataError, first_line, require_extra
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +71,28 @@ class BusSource:
         self.bus.shutdown()
 
 
+@contextlib.contextmanager
+def _quiet_mdf_teardown(path: Path):
+    """asammdf's ``MDF4.__del__`` raises AttributeError on an object whose ``__init__`` failed (a cut-off or
+    corrupt .mf4), which Python prints as a traceback after the one-line error; drop just that report."""
+    if path.suffix.lower() != ".mf4":
+        yield
+        return
+    previous = sys.unraisablehook
+
+    def hook(unraisable) -> None:
+        if not (isinstance(unraisable.exc_value, AttributeError) and type(unraisable.object).__name__ == "function"
+                and "MDF4.__del__" in repr(unraisable.object)):
+            previous(unraisable)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        gc.collect()
+        sys.unraisablehook = previous
+
+
 def check_log(path: str | Path) -> Path:
     """Refuse a missing file or a suffix python-can cannot read, in one line."""
     path = Path(path)
@@ -78,6 +103,8 @@ def check_log(path: str | Path) -> Path:
         suffixes = suffixes[:-1]
     if not suffixes or suffixes[-1] not in LOG_SUFFIXES:
         raise DataError(f"{path}: unknown CAN log format; python-can reads {', '.join(LOG_SUFFIXES)} (optionally .gz)")
+    if suffixes[-1] == ".mf4":  # python-can's MF4 reader needs asammdf (the mf4 extra)
+        require_extra("asammdf", "mf4", f"{path}: an ASAM MDF4 log")
     return path
 
 
@@ -125,15 +152,16 @@ def scan_log(path: str | Path) -> tuple[int, float, float, str | None]:
     n = 0
     first = last = 0.0
     problem = None
-    try:
-        with can.LogReader(str(path)) as reader:
-            for msg in reader:
-                if n == 0:
-                    first = msg.timestamp
-                last = msg.timestamp
-                n += 1
-    except Exception as exc:
-        problem = f"{path}: cannot read CAN log after {n} frames ({first_line(exc, 200)})"
+    with _quiet_mdf_teardown(path):
+        try:
+            with can.LogReader(str(path)) as reader:
+                for msg in reader:
+                    if n == 0:
+                        first = msg.timestamp
+                    last = msg.timestamp
+                    n += 1
+        except Exception as exc:
+            problem = f"{path}: cannot read CAN log after {n} frames ({first_line(exc, 200)})"
     if problem is None:
         cut = truncation_problem(path)
         if cut is not None:
@@ -203,6 +231,10 @@ class LogReplay:
         self.close()
 
     def _feed(self) -> None:
+        with _quiet_mdf_teardown(self.path):
+            self._feed_log()
+
+    def _feed_log(self) -> None:
         try:
             with can.LogReader(str(self.path)) as reader:
                 t_log0 = t_wall0 = None

@@ -560,12 +560,12 @@ def _save_epoch(loop: _Loop, record: dict, history: list[dict], improved: bool, 
     if improved:
         ckpt.pop("optimizer")
         save_checkpoint(ckpt, out_dir / "best.pt")
-    try:
-        from prml2_edge.training.plots import plot_history
+    from prml2_edge.viz import plots
 
-        plot_history(history, out_dir / "loss_curve.png")
-    except ImportError:  # matplotlib is part of the train extra; a missing plot is not fatal
-        log.warning("matplotlib not installed: no loss_curve.png")
+    if plots.available():
+        plots.plot_history(history, out_dir / "loss_curve.png")
+    elif epoch == 0:  # matplotlib is part of the train extra; a missing plot is not fatal
+        log.warning(plots.missing_message(str(out_dir / "loss_curve.png")))
 
 
 def describe(model_cfg: ModelConfig, train_cfg: TrainConfig) -> dict:

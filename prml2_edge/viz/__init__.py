@@ -1,1 +1,1 @@
-"""Dependency-free plotting for the edge runtime (NumPy + zlib only): see :mod:`prml2_edge.viz.png`."""
+"""Plotting: every figure through :mod:`prml2_edge.viz.plots` (matplotlib, the ``plot`` extra)."""

@@ -191,3 +191,23 @@ def test_noise_grid_is_extended_until_its_minimum_is_inside():
     flat[1.0] = 0.5  # falls forever towards 0: extended MAX_GRID_EXTENSIONS times, then reported as not inside
     best, inside = _extend_grid(flat, lambda q: 0.5 - 1.0 / (1.0 + q))
     assert not inside and best == min(flat)
+
+
+def test_evaluate_without_matplotlib_says_so_in_one_line_and_writes_everything_else(tiny, tmp_path):
+    import subprocess
+    import sys
+
+    data, model = tiny
+    out = tmp_path / "report"
+    code = ("import sys; sys.modules['matplotlib'] = None\n"
+            "from prml2_edge.cli.main import main\n"
+            f"sys.exit(main(['evaluate', '--data', {str(data)!r}, '--models', 'PRML2={model}', '--out', {str(out)!r}, "
+            f"'--window-s', '{WINDOW_S}', '--max-windows', '1', '--calibration', 'off']))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                          env={"PRML2_NO_PROGRESS": "1", "PATH": "/usr/bin:/bin"})
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    hint = [line for line in (proc.stdout + proc.stderr).splitlines() if "matplotlib" in line]
+    assert len(hint) == 1 and "'.[plot]'" in hint[0], proc.stdout + proc.stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["figures"] == [] and not list(out.glob("*.png"))
+    assert (out / "report.md").is_file() and len(list((out / "tum" / "PRML2").glob("*.txt"))) == 3

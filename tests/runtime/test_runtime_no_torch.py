@@ -25,14 +25,14 @@ def runtime_modules() -> list[str]:
 
 def test_every_runtime_module_imports_without_torch():
     names = runtime_modules()
-    assert "prml2_edge.runtime.pipeline" in names and "prml2_edge.viz.png" in names
+    assert "prml2_edge.runtime.pipeline" in names and "prml2_edge.viz.plots" in names
     code = BLOCK + "import importlib\n" + "".join(f"importlib.import_module({n!r})\n" for n in names) + \
         "assert sys.modules['torch'] is None\nprint('ok')\n"
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr[-2000:]
 
 
-def test_demo_runs_without_torch_onnx_or_matplotlib(tmp_path):
+def test_demo_runs_without_torch_onnx_or_matplotlib_and_says_how_to_get_the_plot(tmp_path):
     model = make_kinematic_model(tmp_path / "m.onnx")  # built here, with onnx; the child cannot import it
     code = BLOCK + ("from prml2_edge.cli.main import main\n"
                     f"rc = main(['demo', '--seconds', '12', '--gnss-seconds', '5', '--model', {str(model)!r}, "
@@ -41,4 +41,7 @@ def test_demo_runs_without_torch_onnx_or_matplotlib(tmp_path):
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                           env={"PRML2_NO_PROGRESS": "1", "PATH": "/usr/bin:/bin"})
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "pose track vs ground truth" in proc.stdout and (tmp_path / "demo" / "trajectory.png").is_file()
+    assert "pose track vs ground truth" in proc.stdout and not (tmp_path / "demo" / "trajectory.png").exists()
+    # without matplotlib the demo does everything else and says in one line how to get the plot
+    hint = [line for line in proc.stdout.splitlines() if "matplotlib" in line]
+    assert len(hint) == 1 and "trajectory.png" in hint[0] and "'.[plot]'" in hint[0], proc.stdout
