@@ -31,6 +31,9 @@ while the car moves (speedometer >= ``min_speed_mps``) and a witness signal move
 than its span is frozen; it stays invalid until its value changes (``AssembledRow.newly_frozen``
 counts the episodes). The default check is the yaw rate against the steering wheel angle and
 the lateral acceleration: a turning car whose yaw rate does not move has a stuck gyro.
+
+Substitutes: a signal the car lacks (a map's ``absent = true``) holds its constant
+``substitute`` in every row, valid, age 0.
 """
 
 from __future__ import annotations
@@ -94,11 +97,14 @@ class Assembler:
         A frame older than the newest frame by more than this is a clock jump, not jitter [s].
     stuck_checks:
         Stuck-sensor checks (default: :data:`YAW_RATE_STUCK`; ``()`` turns them off).
+    substitutes:
+        ``{canonical index: SI value}`` for signals the car lacks: held in every row, always valid.
     """
 
     def __init__(self, rate_hz, stale_periods: float = 3.0, dt_s: float = schema.DT_S, max_gap_s: float = 5.0,
                  eps_s: float = 1e-4, bus_silent_s: float = 3 * schema.DT_S,
-                 max_backstep_s: float = 0.25, stuck_checks: tuple[StuckCheck, ...] = (YAW_RATE_STUCK,)) -> None:
+                 max_backstep_s: float = 0.25, stuck_checks: tuple[StuckCheck, ...] = (YAW_RATE_STUCK,),
+                 substitutes: dict[int, float] | None = None) -> None:
         rate = np.asarray(rate_hz, dtype=np.float64)
         if rate.shape != (schema.NUM_SIGNALS,) or not np.all(rate > 0):
             raise ValueError(f"rate_hz must be ({schema.NUM_SIGNALS},) positive, got {rate!r}")
@@ -120,6 +126,10 @@ class Assembler:
         self.values = np.zeros(schema.NUM_SIGNALS)
         self.last_t_s = np.full(schema.NUM_SIGNALS, -math.inf)
         self.quality_ok = np.zeros(schema.NUM_SIGNALS, dtype=bool)
+        self.substituted = np.zeros(schema.NUM_SIGNALS, dtype=bool)
+        for index, value in (substitutes or {}).items():
+            self.substituted[index] = True
+            self.values[index] = float(value)
         self._t0: float | None = None
         self._k_next = 0  # index of the next row to emit
         self._pending_gnss: GnssFix | None = None
@@ -128,8 +138,9 @@ class Assembler:
 
     @classmethod
     def for_map(cls, signal_map, **kwargs) -> Assembler:
-        """An assembler with the rates of ``signal_map`` (canonical order)."""
-        return cls([s.rate_hz for s in signal_map.signals], **kwargs)
+        """An assembler with the rates of ``signal_map`` (canonical order) and its absent signals' substitutes."""
+        subs = {schema.SIGNAL_BY_NAME[s.name].index: s.substitute for s in signal_map.signals if s.absent}
+        return cls([s.rate_hz for s in signal_map.signals], substitutes=subs or None, **kwargs)
 
     def _t(self, k: int) -> float:
         return self._t0 + k * self.dt_s  # type: ignore[operator]
@@ -144,6 +155,9 @@ class Assembler:
         t_k = self._t(k)
         age = t_k - self.last_t_s
         valid = self.quality_ok & (age <= self.stale_after_s + self.eps_s)
+        if self.substituted.any():
+            age[self.substituted] = 0.0
+            valid |= self.substituted
         newly_frozen: tuple[int, ...] = ()
         if self.stuck_checks:
             newly_frozen = self._check_stuck(t_k)
@@ -268,9 +282,10 @@ class Assembler:
     def max_signal_age_s(self) -> float | None:
         """Age [s] of the oldest held signal at the last emitted row (None before the first row or any value)."""
         t_row = self.last_row_t_s
-        if t_row is None or not np.isfinite(self.last_t_s).any():
+        held = self.last_t_s[~self.substituted]
+        if t_row is None or not np.isfinite(held).any():
             return None
-        return float(np.max(t_row - self.last_t_s))
+        return float(np.max(t_row - held))
 
     def summary(self) -> dict:
         """The assembler's part of the end-of-run summary."""
