@@ -71,4 +71,6 @@ def run(args: argparse.Namespace) -> int:
 
         summary["truth"] = compare_with_truth(memory.arrays(), truth)
         extra_lines = truth_lines(summary["truth"])
-    return report_run(pipeline, summary, args.summary_json, extra_lines, error=error or problem)
+    # A replay that could not do its job fails: a model that never ran means a pose from nothing but the filter.
+    return report_run(pipeline, summary, args.summary_json, extra_lines,
+                      error=error or problem or pipeline.model_never_ran())

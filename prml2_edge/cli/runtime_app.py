@@ -108,6 +108,8 @@ def summary_lines(summary: dict) -> list[str]:
                  f"{fr['rejected']} rejected ({rejected}); balanced: {'yes' if fr['balanced'] else 'NO'}")
     if fr["late_applied"] or fr["counter_gaps"]:
         lines.append(f"late frames applied {fr['late_applied']}, counter gaps {fr['counter_gaps']}")
+    for line in summary.get("signals_missing") or []:
+        lines.append(f"WARNING signal never received: {line}")
     faults = [f"{n} {fr[k]}" for k, n in (("error_frames", "error frames"), ("remote_frames", "remote frames"),
                                           ("clock_jumps", "clock jumps back")) if fr.get(k)]
     if summary.get("bus_silent_rows"):
