@@ -73,7 +73,7 @@ def file_sinks(cfg: RuntimeConfig) -> list:
     return sinks
 
 
-def build_pipeline(cfg: RuntimeConfig, extra_sinks: list | None = None) -> Pipeline:
+def build_pipeline(cfg: RuntimeConfig, extra_sinks: list | None = None, external_gnss: bool = False) -> Pipeline:
     """Everything the config names, loaded and cross-checked (one-line errors on any mismatch)."""
     model_path = cfg.model.path
     if cfg.model.sha256 is not None:
@@ -88,7 +88,8 @@ def build_pipeline(cfg: RuntimeConfig, extra_sinks: list | None = None) -> Pipel
                               mu=cfg.signals.mu,
                               stale_periods=cfg.signals.stale_periods, initial_pose=initial_pose, sinks=sinks,
                               trt_cache_dir=cfg.model.trt_cache_dir, trt_fp16=cfg.model.trt_fp16,
-                              calibration=cfg.calibration.enabled, calibration_file=cfg.calibration.file)
+                              calibration=cfg.calibration.enabled, calibration_file=cfg.calibration.file,
+                              external_gnss=external_gnss)
     except BaseException:
         for sink in sinks:
             sink.close()

@@ -227,6 +227,22 @@ class Assembler:
         frame.late_applied = late
         return status, rows
 
+    def add_gnss(self, fix: GnssFix, recv_ns: int = 0) -> list[AssembledRow]:
+        """A fix from outside the bus (NMEA, gpsd, a file of fixes), as if a GNSS frame with its time arrived:
+        the rows before it are emitted, then it rides on the next row. It never starts, re-anchors or re-bases
+        the grid (only CAN frames do): a fix before the first frame waits for it, one later than the bus's
+        gap limit is held for the row that comes."""
+        rows: list[AssembledRow] = []
+        t = fix.t_s
+        if not math.isfinite(t):
+            return rows
+        if self._t0 is not None and t - self._t(self._k_next) <= self.max_gap_s:
+            while t > self._t(self._k_next) + self.eps_s:
+                rows.append(self._emit(recv_ns))
+        if self._pending_gnss is None or t >= self._pending_gnss.t_s:
+            self._pending_gnss = fix
+        return rows
+
     def _reanchor(self, t: float) -> None:
         self._t0 = t
         self._k_next = 0

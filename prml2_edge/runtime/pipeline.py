@@ -133,6 +133,7 @@ class Pipeline:
             ident = f", ID {plan.frame_id:#x}" if plan is not None else ""
             self._where[i] = f"{spec.message}.{'+'.join(n for n, _ in spec.summed_parts)}{ident}"
         self._warned_missing = np.zeros(schema.NUM_SIGNALS, dtype=bool)
+        self.gnss_sources: list = []  # objects with due(t_s) -> fixes (runtime.gnss_input), merged by time
 
     @classmethod
     def build(cls, map: str | Path = "prml2_onboard", dbc: str | Path | None = None,
@@ -141,17 +142,18 @@ class Pipeline:
               stride: int = 1, mu: float = 1.0, stale_periods: float = 3.0,
               initial_pose: InitialPose | None = None, sinks: Sequence = (),
               localizer_config: LocalizerConfig | None = None, trt_cache_dir: str = "~/.cache/prml2/trt",
-              trt_fp16: bool = False, calibration: bool = True, calibration_file: str | Path | None = None
-              ) -> Pipeline:
+              trt_fp16: bool = False, calibration: bool = True, calibration_file: str | Path | None = None,
+              external_gnss: bool = False) -> Pipeline:
         """Load and cross-check map, DBC and model; refuse mismatches at start-up with what differs.
 
         ``initial_pose`` None means: take it from the first GNSS fix on the bus, which needs a map
-        with a ``[gnss]`` table.
+        with a ``[gnss]`` table, or ``external_gnss`` (fixes from ``--gnss``, see :meth:`add_gnss_source`).
         """
         signal_map, db, dbc_path = load_map_and_dbc(resolve_map(map), dbc)
-        if initial_pose is None and signal_map.gnss is None:
+        if initial_pose is None and signal_map.gnss is None and not external_gnss:
             raise ConfigError(f"signal map {signal_map.name!r} defines no GNSS fix message, so the initial pose "
-                              "cannot come from the bus: give --initial-pose X,Y,HEADING_DEG or --initial-pose-file")
+                              "cannot come from the bus: give --gnss SOURCE, --initial-pose X,Y,HEADING_DEG or "
+                              "--initial-pose-file")
         if not isinstance(model, OnnxModel):
             model = OnnxModel(model if model is not None else default_model_path(), threads=threads,
                               providers=providers, trt_cache_dir=trt_cache_dir, trt_fp16=trt_fp16,
@@ -192,6 +194,7 @@ class Pipeline:
         """One frame in; the 50 Hz outputs it completed out (usually none or one). Never raises on bad data."""
         t0 = time.perf_counter_ns()
         recv_ns = t0 if recv_ns is None else recv_ns
+        outs = self._gnss_due(float(msg.timestamp), recv_ns) if self.gnss_sources else []
         frame = self.decoder.step(msg)
         t1 = time.perf_counter_ns()
         status, rows = self.assembler.step(frame, recv_ns)
@@ -202,7 +205,24 @@ class Pipeline:
         lat.add("assemble", t2 - t1)
         self._interval.frames += 1
         self._last_frame_wall = time.monotonic()
-        return [self._row(row) for row in rows] if rows else []
+        if rows:
+            outs += [self._row(row) for row in rows]
+        return outs
+
+    def add_gnss_source(self, source) -> None:
+        """Merge fixes from ``source`` (``due(t_s)`` returns those up to frame time ``t_s``) into the stream."""
+        self.gnss_sources.append(source)
+
+    def _gnss_due(self, t_s: float, recv_ns: int) -> list[StepOutput]:
+        outs = []
+        for source in self.gnss_sources:
+            for fix in source.due(t_s):
+                if fix.valid:
+                    self.stats.gnss_fixes += 1
+                else:
+                    self.stats.gnss_invalid += 1
+                outs += [self._row(row) for row in self.assembler.add_gnss(fix, recv_ns)]
+        return outs
 
     def finish(self) -> list[StepOutput]:
         """End of stream: emit the last row(s) still held by the assembler."""
