@@ -10,7 +10,7 @@ load without a word and train or evaluate on mirrored physics, so after loading:
   (two of the three agreeing names the odd one out);
 * ``acc_hor_y`` against v_x x yaw rate; ``INS_velCOG_hor_y`` against the lateral velocity the
   positions give (``ins_pos_rel_x/y`` differentiated, rotated into the vehicle frame by ``ins_yaw``);
-* the onboard columns with :func:`prml2_edge.signal_checks.check_onboard`: ``Yawrate_obd`` against
+* the onboard columns with :func:`prml2_edge.data.signal_checks.check_onboard`: ``Yawrate_obd`` against
   the rear wheel-speed difference, ``LatAcc_obd`` against speed x yaw rate, ``SW_pos_obd``
   against the yaw rate at low speed, the wheels against each other and the speedometer.
 
@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from prml2_edge import schema
-from prml2_edge.signal_checks import FAIL, PASS, SKIP, WARN, _corr, _smooth, check_onboard
+from prml2_edge.data.signal_checks import FAIL, PASS, SKIP, WARN, _corr, _smooth, check_onboard
 
 MIN_ROWS = 100
 MIN_R = 0.5

@@ -3,7 +3,7 @@
 The log is read through the runtime's own decoder and 50 Hz assembler (the same checks the
 runtime applies), then reported per canonical signal: frames of its message, measured rate
 against the map's ``rate_hz``, range, resolution and validity; every mapped signal never seen
-(naming message and ID); and the physics checks of :mod:`prml2_edge.signal_checks` (signs and
+(naming message and ID); and the physics checks of :mod:`prml2_edge.data.signal_checks` (signs and
 scales), each failure with the signal to blame and the fix for the map.
 """
 
@@ -17,12 +17,12 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.can.signal_map import SignalMap, load_map_and_dbc, resolve_map
+from prml2_edge.data.signal_checks import FAIL, PASS, SKIP, WARN, Finding, check_onboard, snap_factor
 from prml2_edge.errors import DataError, first_line
 from prml2_edge.runtime.assembler import Assembler
 from prml2_edge.runtime.decode import FrameDecoder
 from prml2_edge.runtime.source import check_log, truncation_problem
 from prml2_edge.runtime.status import FrameStatus
-from prml2_edge.signal_checks import FAIL, PASS, SKIP, WARN, Finding, check_onboard, snap_factor
 
 RATE_TOL = 0.2  # measured rate within +-20 % of the declared one
 MIN_VALID_SHARE = 0.95
