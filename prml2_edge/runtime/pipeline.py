@@ -132,7 +132,7 @@ class Pipeline:
             plan = next((p for p in decoder.plans.values() if p.name == spec.message), None)
             ident = f", ID {plan.frame_id:#x}" if plan is not None else ""
             self._where[i] = f"{spec.message}.{'+'.join(n for n, _ in spec.summed_parts)}{ident}"
-        self._warned_missing = np.zeros(schema.NUM_SIGNALS, dtype=bool)
+        self._warned_missing = ~np.isfinite(self._missing_after_s)  # absent signals are never missing
         self.gnss_sources: list = []  # objects with due(t_s) -> fixes (runtime.gnss_input), merged by time
 
     @classmethod
@@ -251,6 +251,7 @@ class Pipeline:
         return lines
 
     def _warn_missing(self, t_s: float) -> None:
+        self._warned_missing |= np.isfinite(self.assembler.last_t_s)  # seen: nothing to warn about, ever
         due = ~self._warned_missing & ~np.isfinite(self.assembler.last_t_s) & \
             (t_s - self.first_t_s >= self._missing_after_s)  # type: ignore[operator]
         if not due.any():
