@@ -22,7 +22,7 @@ from prml2_edge.cli.main import main
 from prml2_edge.data.simulate import simulate_drive
 from prml2_edge.errors import DataError
 from prml2_edge.runtime.decode import FrameDecoder
-from prml2_edge.runtime.gnss_input import LocalFrame, fix_sentences, load_fixes, nmea_sentence
+from prml2_edge.runtime.gnss_input import LocalFrame, fix_sentences, load_fixes, nmea_sentence, open_live
 from prml2_edge.schema import heading_deg_to_psi_rad
 from prml2_edge.tum import tum_line
 
@@ -204,3 +204,37 @@ def test_run_with_gpsd_fuses_its_fixes(logs, tmp_path, capsys):
     assert s["gnss_input"]["source"] == f"gpsd://127.0.0.1:{server.port}" and s["gnss_input"]["fixes"] >= 20
     assert s["frames"]["gnss_fixes"] >= 20 and s["steps_by_status"].get("GNSS_AIDED", 0) > 0
     assert s["last"]["x_m"] is not None
+
+
+def test_serial_nmea_receiver_on_a_pty():
+    import os
+
+    master, slave = os.openpty()
+    frame = LocalFrame(ORIGIN)
+    source = open_live(os.ttyname(slave), frame).start()
+    try:
+        lat, lon = frame.to_geodetic(10.0, -5.0)
+        lines = []
+        for k in range(3):  # three epochs; the last completes when the next one begins (never here)
+            lines += list(fix_sentences(T0 + 0.1 * k, lat, lon, 45.0, 8.0))
+        os.write(master, ("\r\n".join(lines) + "\r\n").encode())
+        deadline = time.monotonic() + 5.0
+        got = []
+        while len(got) < 2 and time.monotonic() < deadline:
+            got += source.pop()
+            time.sleep(0.05)
+    finally:
+        source.close()
+        os.close(master)
+        os.close(slave)
+    assert len(got) >= 2 and all(f.valid and f.heading_deg == 45.0 for f in got)
+    assert got[0].x_m == pytest.approx(10.0, abs=1e-3) and got[0].y_m == pytest.approx(-5.0, abs=1e-3)
+
+
+def test_live_gnss_spec_errors_are_one_line(logs, capsys):
+    _, _, model = logs
+    assert main(["run", "--interface", "virtual", "--channel", "x", "--model", str(model), "--gnss",
+                 "/dev/does-not-exist"]) == 1
+    assert "serial device /dev/does-not-exist not found" in capsys.readouterr().err
+    assert main(["run", "--interface", "virtual", "--channel", "x", "--model", str(model), "--gnss", "fixes.nmea"]) == 1
+    assert "for a live run give gpsd://HOST[:PORT] or a serial device" in capsys.readouterr().err
