@@ -7,9 +7,8 @@ Windows: the benchmark recipe's validation split (``prml2 simulate --recipe benc
 shipped model ``export/default/prml2_edge.onnx`` through ``prml2_edge.evaluation.protocol.run_window``
 (the streaming path ``prml2 evaluate`` uses). Variants: the measured brake pressure (reference), a constant
 0 bar (the Toyota map's substitute), a constant 0.85 bar (the middle of the simulated idle level, about
-the sample's), and, for comparison only (the runtime does not offer it), a value derived from the
-deceleration of the mean wheel speed (idle 0.85 bar + 10 bar per m/s^2 of deceleration, the simulated
-car's brake gain).
+the sample's), and ``substitute = "wheel_deceleration"``: derived from the deceleration of the mean
+wheel speed over 0.2 s (idle 0.85 bar + 10 bar per m/s^2 of deceleration, the simulated car's brake gain).
 
 Usage::
 
@@ -28,23 +27,20 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.bench.machine import machine_info
+from prml2_edge.can.signal_map import DECEL_BAR_PER_MPS2, DECEL_IDLE_BAR
 from prml2_edge.data.datasets import generate_dataset, load_dataset
 from prml2_edge.evaluation.protocol import ModelSpec, run_all, split_tasks
+from prml2_edge.runtime.assembler import wheel_deceleration_substitute
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 OUT = HERE / "results" / "brake_substitute.json"
 BRAKE = schema.SIGNAL_BY_NAME["brake_pressure_bar"].index
-WHEELS = list(schema.WHEEL_SPEED_INDICES)
 
 
 def decel_brake(onboard: np.ndarray) -> np.ndarray:
-    """Causal brake pressure from the deceleration of the mean wheel speed (0.2 s difference)."""
-    v = onboard[:, WHEELS].mean(axis=1)
-    lag = 10
-    a = np.zeros_like(v)
-    a[lag:] = (v[lag:] - v[:-lag]) / (lag * schema.DT_S)
-    return 0.85 + 10.0 * np.clip(-a, 0.0, None)
+    """The runtime's ``substitute = "wheel_deceleration"`` with its defaults (the assembler's own formula)."""
+    return wheel_deceleration_substitute(onboard, DECEL_IDLE_BAR, DECEL_BAR_PER_MPS2)
 
 
 def _with_brake(onboard: np.ndarray, fn) -> np.ndarray:
@@ -57,7 +53,7 @@ VARIANTS = {
     "measured (trained with)": None,
     "constant 0 bar": lambda o: np.zeros(len(o)),
     "constant 0.85 bar": lambda o: np.full(len(o), 0.85),
-    "from wheel deceleration (not in the runtime)": decel_brake,
+    "wheel_deceleration (0.85 bar + 10 bar per m/s^2)": decel_brake,
 }
 
 

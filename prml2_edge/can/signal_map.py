@@ -17,9 +17,11 @@ the parts' physical values (each times its ``part_scale``, default 1) before ``s
 ``offset`` (Toyota's steering angle: 1.5 deg steps plus a 0.1 deg fraction).
 
 **A signal the car lacks:** ``absent = true`` with ``substitute = VALUE`` (SI, default 0.0):
-the runtime feeds that constant, always valid, in place of the signal (README "Bring your own
-car" says what it costs). Only ``brake_pressure_bar`` may be absent: the model cannot do
-without speeds, steering, yaw rate or lateral acceleration.
+the runtime feeds that constant, always valid, in place of the signal; or ``substitute =
+"wheel_deceleration"``: ``idle + per_mps2 * max(0, -a)`` with ``a`` the change of the mean wheel
+speed over the last 0.2 s (defaults 0.85 bar and 10 bar per m/s^2, what the shipped model was
+trained with). README "Bring your own car" says what each costs. Only ``brake_pressure_bar`` may
+be absent: the model cannot do without speeds, steering, yaw rate or lateral acceleration.
 
 **GNSS from the project DBC on a vehicle bus:** ``[gnss] dbc = "prml2_onboard.dbc"`` takes the
 GNSS message from that DBC instead of merging it into the vehicle's; an ID that collides with a
@@ -42,7 +44,10 @@ from prml2_edge.resources import resource_path
 
 _MAP_KEYS = {"name", "dbc", "description", "strict", "short_frames"}
 _SIGNAL_KEYS = {"message", "signal", "part_scale", "scale", "offset", "rate_hz", "valid", "valid_value", "sign"}
-_ABSENT_KEYS = {"absent", "substitute", "rate_hz"}
+_ABSENT_KEYS = {"absent", "substitute", "idle", "per_mps2", "rate_hz"}
+SUBSTITUTES = ("wheel_deceleration",)  # besides a constant: derived substitutes the assembler computes
+DECEL_IDLE_BAR = 0.85  # wheel_deceleration: the value at no deceleration (the simulated idle level)
+DECEL_BAR_PER_MPS2 = 10.0  # ... and per m/s^2 of deceleration (the simulated car's brake gain)
 OPTIONAL_SIGNALS = ("brake_pressure_bar",)  # signals a car may lack (absent = true)
 _MESSAGE_KEYS = {"counter", "checksum", "checksum_algorithm"}
 _GNSS_KEYS = {"message", "x", "y", "heading", "valid", "dbc"}
@@ -64,7 +69,9 @@ class SignalSpec:
     sign: str | None = None  # sign bit signal; set means negative
     parts: tuple[tuple[str, float], ...] = ()  # (DBC signal, part_scale) summed; () means ((signal, 1.0),)
     absent: bool = False  # the car lacks this signal: the runtime feeds ``substitute``
-    substitute: float = 0.0  # SI value fed for an absent signal
+    substitute: float = 0.0  # SI value fed for an absent signal (wheel_deceleration: the idle value)
+    substitute_kind: str = "constant"  # or "wheel_deceleration"
+    substitute_per_mps2: float = 0.0  # wheel_deceleration: SI units per m/s^2 of deceleration
 
     @property
     def summed_parts(self) -> tuple[tuple[str, float], ...]:
@@ -187,10 +194,24 @@ def _absent_spec(where: str, name: str, t: dict) -> SignalSpec:
         raise ConfigError(f"{where}: {name} cannot be absent (only {', '.join(OPTIONAL_SIGNALS)} may be): "
                           "the model cannot work without it; map it to a DBC signal")
     sig = schema.SIGNAL_BY_NAME[name]
-    value = float(_typed(where, "substitute", t.get("substitute", 0.0), float))
+    rate = float(_typed(where, "rate_hz", t.get("rate_hz", schema.SAMPLE_RATE_HZ), float))
+    sub = t.get("substitute", 0.0)
+    if isinstance(sub, str):
+        if sub not in SUBSTITUTES:
+            raise ConfigError(f"{where}: substitute {sub!r} unknown; give a number (SI) or one of "
+                              f"{', '.join(SUBSTITUTES)}")
+        idle = float(_typed(where, "idle", t.get("idle", DECEL_IDLE_BAR), float))
+        gain = float(_typed(where, "per_mps2", t.get("per_mps2", DECEL_BAR_PER_MPS2), float))
+        if not sig.min <= idle <= sig.max or gain < 0:
+            raise ConfigError(f"{where}: idle must lie in [{sig.min}, {sig.max}] {sig.unit} and per_mps2 be >= 0")
+        return SignalSpec(name=name, message="", signal="", rate_hz=rate, absent=True, substitute=idle,
+                          substitute_kind=sub, substitute_per_mps2=gain)
+    for key in ("idle", "per_mps2"):
+        if key in t:
+            raise ConfigError(f"{where}: {key!r} goes with substitute = \"wheel_deceleration\"")
+    value = float(_typed(where, "substitute", sub, float))
     if not sig.min <= value <= sig.max:
         raise ConfigError(f"{where}: substitute {value} outside the signal's range [{sig.min}, {sig.max}] {sig.unit}")
-    rate = float(_typed(where, "rate_hz", t.get("rate_hz", schema.SAMPLE_RATE_HZ), float))
     return SignalSpec(name=name, message="", signal="", rate_hz=rate, absent=True, substitute=value)
 
 

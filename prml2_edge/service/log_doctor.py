@@ -158,8 +158,10 @@ def _with_map_fix(f: Finding, spec) -> Finding:
 def _signal_report(smap: SignalMap, spec, times, rejected, values, valid, duration, decoder) -> SignalReport:
     i = schema.SIGNAL_BY_NAME[spec.name].index
     if spec.absent:
-        return SignalReport(spec.name, PASS, problems=[f"absent on this car: the runtime feeds {spec.substitute:g} "
-                                                       f"{schema.SIGNALS[i].unit} (substitute)"])
+        unit = schema.SIGNALS[i].unit
+        fed = (f"{spec.substitute:g} {unit} + {spec.substitute_per_mps2:g} {unit} per m/s^2 of wheel deceleration"
+               if spec.substitute_kind == "wheel_deceleration" else f"{spec.substitute:g} {unit}")
+        return SignalReport(spec.name, PASS, problems=[f"absent on this car: the runtime feeds {fed} (substitute)"])
     plan = next(p for p in decoder.plans.values() if p.name == spec.message)
     rep = SignalReport(spec.name, PASS, spec.message, plan.frame_id, len(times[spec.message]),
                        len(values[i]), declared_hz=spec.rate_hz)

@@ -33,6 +33,7 @@ def test_toyota_map_loads_with_summed_steering_and_absent_brake(shared_dir):
     by = {s.name: s for s in smap.signals}
     assert by["steering_wheel_angle_rad"].summed_parts == (("STEER_ANGLE", 1.0), ("STEER_FRACTION", 1.0))
     assert by["brake_pressure_bar"].absent and "BRAKE_MODULE" not in smap.message_names
+    assert by["brake_pressure_bar"].substitute_kind == "wheel_deceleration"
     assert by["lat_accel_mps2"].scale == -1.0 and by["yaw_rate_radps"].scale > 0
     assert by["yaw_rate_radps"].rate_hz == 83.0 and by["speedometer_mps"].rate_hz == 41.5
     assert not smap.strict and smap.short_frames
@@ -64,15 +65,42 @@ def test_short_payload_is_accepted_when_it_holds_the_mapped_bits(shared_dir):
         is FrameStatus.REJECTED_DLC
 
 
-def test_absent_signal_is_fed_its_substitute_always_valid(shared_dir):
-    smap, _, _ = load_map_and_dbc(shipped_map_path("toyota_rav4_2018"), toyota_dbc(shared_dir))
-    asm = Assembler.for_map(smap)
+def _no_brake_map(tmp_path, substitute: str):
+    src = PROJECT_MAP.read_text()
+    brake = src[src.index("[signals.brake_pressure_bar]"):src.index("[signals.wheel_speed_fl_mps]")]
+    text = src.replace(brake, f"[signals.brake_pressure_bar]\nabsent = true\nsubstitute = {substitute}\n\n")
+    return load_signal_map(_write(tmp_path, text))
+
+
+def test_absent_signal_is_fed_its_constant_substitute_always_valid(tmp_path):
+    asm = Assembler.for_map(_no_brake_map(tmp_path, "1.5"))
     i = IDX["brake_pressure_bar"]
     rows = []
     for k in range(5):
         _, emitted = asm.step(DecodedFrame(FrameStatus.USED, 0.02 * k, "SPEED", [0], [10.0], [True]))
         rows += emitted
-    assert rows and all(r.valid[i] and r.values[i] == 0.0 and r.age_s[i] == 0.0 for r in rows)
+    assert rows and all(r.valid[i] and r.values[i] == 1.5 and r.age_s[i] == 0.0 for r in rows)
+
+
+def test_wheel_deceleration_substitute_streams_what_the_formula_gives(tmp_path):
+    from prml2_edge.data.simulate import simulate_drive
+    from prml2_edge.runtime.assembler import wheel_deceleration_substitute
+
+    smap = _no_brake_map(tmp_path, '"wheel_deceleration"')
+    spec = smap.signals[IDX["brake_pressure_bar"]]
+    assert (spec.substitute, spec.substitute_per_mps2) == (0.85, 10.0)
+    drive = simulate_drive(0.5, 1.0, 4, family="longitudinal")  # brakes hard, also to standstill
+    asm = Assembler.for_map(smap)
+    wheels = list(schema.WHEEL_SPEED_INDICES)
+    rows = []
+    for k in range(len(drive)):  # one frame per 50 Hz row with the four wheel speeds
+        frame = DecodedFrame(FrameStatus.USED, drive.t_s[k], "W", wheels, list(drive.onboard[k, wheels]), [True] * 4)
+        rows += asm.step(frame)[1]
+    rows += asm.flush()
+    got = np.array([r.values[IDX["brake_pressure_bar"]] for r in rows])
+    want = wheel_deceleration_substitute(drive.onboard, 0.85, 10.0)
+    np.testing.assert_allclose(got, want[:len(got)], atol=1e-9)
+    assert got.max() > 20.0 and np.all(got >= 0.85)  # braking shows, idle otherwise
 
 
 def test_only_brake_pressure_may_be_absent_and_keys_are_checked(tmp_path):
@@ -89,6 +117,12 @@ def test_only_brake_pressure_may_be_absent_and_keys_are_checked(tmp_path):
     ok = load_signal_map(_write(tmp_path, src.replace(brake, "[signals.brake_pressure_bar]\nabsent = true\n"
                                                              "substitute = 1.5\n\n")))
     assert ok.signals[IDX["brake_pressure_bar"]].substitute == 1.5
+    with pytest.raises(ConfigError, match="substitute 'zeros' unknown"):
+        load_signal_map(_write(tmp_path, src.replace(brake, "[signals.brake_pressure_bar]\nabsent = true\n"
+                                                            'substitute = "zeros"\n\n')))
+    with pytest.raises(ConfigError, match="'per_mps2' goes with"):
+        load_signal_map(_write(tmp_path, src.replace(brake, "[signals.brake_pressure_bar]\nabsent = true\n"
+                                                            "per_mps2 = 3.0\n\n")))
     with pytest.raises(ConfigError, match="'part_scale' must be a list of 2"):
         load_signal_map(_write(tmp_path, src.replace('signal = "YAW_RATE"',
                                                      'signal = ["YAW_RATE", "LAT_ACCEL"]\npart_scale = [1.0]')))

@@ -56,7 +56,8 @@ def runs(tmp_path_factory, shared_dir):
     src = shipped_map_path("prml2_onboard").read_text()
     brake = src[src.index("[signals.brake_pressure_bar]"):src.index("[signals.wheel_speed_fl_mps]")]
     no_brake = root / "prml2_no_brake.toml"
-    no_brake.write_text(src.replace(brake, "[signals.brake_pressure_bar]\nabsent = true\nsubstitute = 0.0\n\n")
+    no_brake.write_text(src.replace(brake, "[signals.brake_pressure_bar]\nabsent = true\n"
+                                                 'substitute = "wheel_deceleration"\n\n')
                         .replace('dbc = "prml2_onboard.dbc"',
                                  f'dbc = "{shipped_map_path("prml2_onboard").parent.parent / "prml2_onboard.dbc"}"'))
     pose = InitialPose(float(drive.pose_gt[0, 0]), float(drive.pose_gt[0, 1]),
