@@ -214,15 +214,16 @@ def test_serial_nmea_receiver_on_a_pty():
     source = open_live(os.ttyname(slave), frame).start()
     try:
         lat, lon = frame.to_geodetic(10.0, -5.0)
-        lines = []
-        for k in range(3):  # three epochs; the last completes when the next one begins (never here)
-            lines += list(fix_sentences(T0 + 0.1 * k, lat, lon, 45.0, 8.0))
-        os.write(master, ("\r\n".join(lines) + "\r\n").encode())
-        deadline = time.monotonic() + 5.0
+        deadline = time.monotonic() + 10.0
         got = []
+        k = 0
+        # a new epoch every 0.1 s (pyserial flushes what arrived before it opened the port); an epoch's fix
+        # is complete when the next epoch begins
         while len(got) < 2 and time.monotonic() < deadline:
+            os.write(master, ("\r\n".join(fix_sentences(T0 + 0.1 * k, lat, lon, 45.0, 8.0)) + "\r\n").encode())
+            k += 1
+            time.sleep(0.1)
             got += source.pop()
-            time.sleep(0.05)
     finally:
         source.close()
         os.close(master)

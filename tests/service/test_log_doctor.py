@@ -25,7 +25,7 @@ def dbc_for(shared_dir, name):
 
 @pytest.fixture(scope="module")
 def drive():
-    return simulate_drive(1.5, 1.0, 5, family="mixed")  # 90 s with turns, some below 12 m/s
+    return simulate_drive(0.75, 1.0, 1, family="mixed")  # 45 s with turns, some below 12 m/s
 
 
 @pytest.mark.parametrize("name", SHIPPED_MAPS)
