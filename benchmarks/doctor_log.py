@@ -44,6 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--minutes", type=float, default=1.5)
     ap.add_argument("--maps", default=",".join(SHIPPED_MAPS))
     ap.add_argument("--shared", default=str(SHARED))
+    ap.add_argument("--out", default=str(OUT))
     args = ap.parse_args(argv)
     t0 = time.time()
     maps = [m for m in args.maps.split(",") if m]
@@ -92,9 +93,10 @@ def main(argv: list[str] | None = None) -> int:
            "misses": [c for c in cases if (c["mistake"] == "clean") == bool(c["failures"])
                       or (c["mistake"] != "clean" and expected_culprit(c["mistake"]) not in
                           [s for s, _ in c["failures"]])]}
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(out, indent=1) + "\n")
-    print(f"{time.time() - t0:.0f} s; wrote {OUT}")
+    out_path = Path(args.out)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    out_path.write_text(json.dumps(out, indent=1) + "\n")
+    print(f"{time.time() - t0:.0f} s; wrote {out_path}")
     misses = out["misses"]
     return 1 if misses else 0
 
