@@ -49,21 +49,64 @@ def _default_value(sig) -> float:
             if "RTK_FIXED" in str(name).upper():
                 return float(raw)
     value = float(sig.initial) if sig.initial is not None else 0.0
-    lo = sig.minimum if sig.minimum is not None else -math.inf
-    hi = sig.maximum if sig.maximum is not None else math.inf
+    lo, hi = _value_range(sig)
     return min(max(value, lo), hi)
+
+
+def _raw_range(sig) -> tuple[float, float]:
+    """The physical values the signal's bits can hold."""
+    scale = float(sig.scale) if sig.scale else 1.0
+    offset = float(sig.offset or 0.0)
+    lo_raw, hi_raw = (-(1 << (sig.length - 1)), (1 << (sig.length - 1)) - 1) if sig.is_signed else \
+        (0, (1 << sig.length) - 1)
+    a, b = lo_raw * scale + offset, hi_raw * scale + offset
+    return min(a, b), max(a, b)
+
+
+def _value_range(sig) -> tuple[float, float]:
+    """The DBC's [min|max] where it lies within what the bits hold, else the bits' range.
+
+    Production DBCs carry placeholder ranges (Toyota's KINEMATICS.YAW_RATE says [0|65535] for a
+    10-bit signal with offset -125): such a range is ignored instead of clipping every negative value.
+    """
+    lo_bits, hi_bits = _raw_range(sig)
+    lo, hi = sig.minimum, sig.maximum
+    if lo is None or hi is None or lo >= hi:
+        return lo_bits, hi_bits
+    tol = abs(float(sig.scale or 1.0))
+    if lo < lo_bits - tol or hi > hi_bits + tol:
+        return lo_bits, hi_bits
+    return max(lo, lo_bits), min(hi, hi_bits)
 
 
 def _quantise_physical(sig, value: float) -> tuple[float, bool]:
     """Clip ``value`` to the DBC signal's range and round it to its resolution; returns (value, clipped)."""
-    lo = sig.minimum if sig.minimum is not None else -math.inf
-    hi = sig.maximum if sig.maximum is not None else math.inf
+    lo, hi = _value_range(sig)
     clipped = not (lo <= value <= hi)
     value = min(max(value, lo), hi)
     scale = float(sig.scale) if sig.scale else 1.0
     offset = float(sig.offset or 0.0)
     raw = round((value - offset) / scale)
     return raw * scale + offset, clipped
+
+
+def _split_parts(msg, parts: tuple[tuple[str, float], ...], value: float) -> tuple[dict[str, float], bool]:
+    """Split a physical ``value`` over summed signal parts: each part takes what its resolution and range
+    can hold of the remainder (Toyota: 1.5 deg steps, then the 0.1 deg fraction). Returns (values, clipped)."""
+    out = {}
+    rest = value
+    clipped = False
+    for i, (name, weight) in enumerate(parts):
+        sig = msg.get_signal_by_name(name)
+        want = rest / weight
+        if i < len(parts) - 1:  # leave the finer parts a remainder of at most half a step
+            step = abs(float(sig.scale or 1.0))
+            want = math.floor(want / step + 0.5) * step
+        phys, was_clipped = _quantise_physical(sig, want)
+        clipped |= was_clipped and i == len(parts) - 1
+        out[name] = phys
+        rest -= phys * weight
+    return out, clipped
 
 
 def _writer_for(out_path: Path) -> can.io.generic.MessageWriter:
@@ -161,7 +204,7 @@ def encode_drive_to_log(drive, out_path: str | Path, signal_map_path: str | Path
 
 def _plan_message(smap, db, msg_name: str) -> _MessagePlan:
     """How to build frames of ``msg_name``: the signals the map feeds, integrity checks, defaults for the rest."""
-    specs = [s for s in smap.signals if s.message == msg_name]
+    specs = [s for s in smap.present if s.message == msg_name]
     message = db.get_message_by_name(msg_name)
     checks = smap.messages.get(msg_name)
     counter = checks.counter if checks else None
@@ -171,7 +214,8 @@ def _plan_message(smap, db, msg_name: str) -> _MessagePlan:
     if checksum is not None:
         cs = message.get_signal_by_name(checksum)
         in_byte0 = cs.start == 0 and cs.length == 8 and cs.byte_order == "little_endian"
-    fed = {s.signal for s in specs} | {s.valid for s in specs if s.valid} | {s.sign for s in specs if s.sign}
+    fed = {p for s in specs for p, _ in s.summed_parts} | {s.valid for s in specs if s.valid} | \
+        {s.sign for s in specs if s.sign}
     fed |= {x for x in (counter, checksum) if x}
     defaults = {sig.name: _default_value(sig) for sig in message.signals if sig.name not in fed}
     return _MessagePlan(message, max(s.rate_hz for s in specs), specs, counter, checksum, fn, in_byte0, defaults)
@@ -219,10 +263,14 @@ def _encode_onboard(plan: _MessagePlan, row: list[float], count: int, clipped: d
             invalid[spec.name] = invalid.get(spec.name, 0) + 1
             v_si = 0.0
         phys, sign_bit = spec.from_si(v_si)
-        phys, was_clipped = _quantise_physical(msg.get_signal_by_name(spec.signal), phys)
+        if spec.parts:
+            part_values, was_clipped = _split_parts(msg, spec.parts, phys)
+            values.update(part_values)
+        else:
+            phys, was_clipped = _quantise_physical(msg.get_signal_by_name(spec.signal), phys)
+            values[spec.signal] = phys
         if was_clipped:
             clipped[spec.name] = clipped.get(spec.name, 0) + 1
-        values[spec.signal] = phys
         if spec.sign:
             values[spec.sign] = sign_bit
         if spec.valid:

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-HELP = "Check this box: CAN interfaces, ONNX Runtime providers, DBC/map/model consistency."
+HELP = ("Check this box (CAN interfaces, ONNX Runtime providers, DBC/map/model consistency); with --log, a signal "
+        "map against a recorded drive (signs, scales, rates); with --data, a dataset's sign conventions.")
 NEEDS: tuple[tuple[str, str], ...] = ()
 
 
@@ -16,6 +17,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dbc", metavar="PATH", help="DBC file (overrides the config)")
     parser.add_argument("--model", metavar="PATH", help="ONNX model (overrides the config)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+    parser.add_argument("--log", metavar="LOG",
+                        help="a recorded CAN log of this car (any python-can format): check the map and DBC against "
+                             "it: every signal's frames, rate, range, resolution and validity, signals never seen, "
+                             "and signs and scales from physics (a few minutes with turns, some at low speed)")
+    parser.add_argument("--data", metavar="DIR",
+                        help="a folder of ReV-StED-schema CSVs (or one CSV): check the sign conventions of the "
+                             "ground truth and the onboard columns from physics")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -28,6 +36,10 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config) if args.config else RuntimeConfig()
     cfg = with_overrides(cfg, can={"interface": args.interface, "channel": args.channel},
                          signals={"map": args.map, "dbc": args.dbc}, model={"path": args.model})
+    if args.log:
+        return _check_log(args, cfg)
+    if args.data:
+        return _check_data(args)
     checks = run_checks(cfg)
     failed = [c for c in checks if c.result == FAIL]
     if args.json:
@@ -35,4 +47,31 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(format_table(checks))
         print(f"\n{len(checks) - len(failed)} of {len(checks)} checks passed" + (" (see the hints)" if failed else ""))
+    return 1 if failed else 0
+
+
+def _check_log(args: argparse.Namespace, cfg) -> int:
+    import json
+
+    from prml2_edge.service.log_doctor import check_log_file, format_report
+
+    report = check_log_file(args.log, cfg.signals.map, cfg.signals.dbc)
+    if args.json:
+        print(json.dumps(report.as_dict()))
+    else:
+        print(format_report(report))
+    return 0 if report.ok else 1
+
+
+def _check_data(args: argparse.Namespace) -> int:
+    import json
+
+    from prml2_edge.data.conventions import check_folder, format_findings
+
+    results = check_folder(args.data)
+    failed = [r for r in results if r.result == "FAIL"]
+    if args.json:
+        print(json.dumps({"ok": not failed, "checks": [r.as_dict() for r in results]}))
+    else:
+        print(format_findings(results))
     return 1 if failed else 0

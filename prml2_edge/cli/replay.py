@@ -25,6 +25,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --truth: write the ground truth at the replayed steps' times in TUM format, to "
                              "score --tum with evo (evo_ape tum PATH pose.tum)")
     add_pipeline_arguments(parser)
+    from prml2_edge.cli.runtime_args import add_gnss_arguments
+
+    add_gnss_arguments(parser, live=False)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -59,7 +62,17 @@ def run(args: argparse.Namespace) -> int:
         truth = load_drive(args.truth, require_ground_truth=True)
         memory = MemorySink()
         extra.append(memory)
-    pipeline = build_pipeline(cfg, extra)
+    feed = None
+    if getattr(args, "gnss", None):
+        from prml2_edge.runtime.gnss_input import FixFeed, LocalFrame, check_overlap, load_fixes
+
+        fixes = load_fixes(args.gnss, LocalFrame.parse(args.gnss_origin), args.gnss_time_offset)
+        check_overlap(fixes, t_first, t_last, args.gnss)
+        feed = FixFeed(fixes, str(args.gnss))
+    pipeline = build_pipeline(cfg, extra, external_gnss=feed is not None)
+    if feed is not None:
+        pipeline.add_gnss_source(feed)
+        print(f"GNSS: {len(feed.fixes)} fixes from {args.gnss}, merged by time")
     print(f"replaying {args.log}: {n_frames} frames, {t_last - t_first:.1f} s"
           f"{' in real time' if args.realtime else ''}; {pipeline.model.describe()}"
           + (" (the log is damaged: replaying the frames before the damage)" if problem else ""))
@@ -71,6 +84,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         pipeline.close()
     summary = pipeline.summary()
+    if feed is not None:
+        summary["gnss_input"] = feed.summary()
     extra_lines = []
     if truth is not None:
         from prml2_edge.runtime.demo import compare_with_truth, truth_lines
@@ -84,4 +99,6 @@ def run(args: argparse.Namespace) -> int:
 
             true_pose, _, ok = align_with_truth(arrays, truth)
             write_tum(args.truth_tum, arrays["t_s"][ok], true_pose[ok])
-    return report_run(pipeline, summary, args.summary_json, extra_lines, error=error or problem)
+    # A replay that could not do its job fails: a model that never ran means a pose from nothing but the filter.
+    return report_run(pipeline, summary, args.summary_json, extra_lines,
+                      error=error or problem or pipeline.model_never_ran())

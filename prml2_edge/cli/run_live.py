@@ -21,6 +21,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--status-interval", type=float, help="seconds between status lines (default 5; 0: none)")
     g.add_argument("--duration", type=float, help="stop after this many seconds (default: until SIGINT/SIGTERM)")
     add_pipeline_arguments(parser)
+    from prml2_edge.cli.runtime_args import add_gnss_arguments
+
+    add_gnss_arguments(parser, live=True)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -37,7 +40,14 @@ def run(args: argparse.Namespace) -> int:
 
     log = logging.getLogger("prml2.run")
     cfg = config_from_args(args)
-    pipeline = build_pipeline(cfg)
+    gnss = None
+    if getattr(args, "gnss", None):
+        from prml2_edge.runtime.gnss_input import LocalFrame, open_live
+
+        gnss = open_live(args.gnss, LocalFrame.parse(args.gnss_origin))
+    pipeline = build_pipeline(cfg, external_gnss=gnss is not None)
+    if gnss is not None:
+        pipeline.add_gnss_source(gnss.start())
     bus = open_bus(cfg.can.interface, cfg.can.channel, bitrate=cfg.can.bitrate, fd=cfg.can.fd)
     if args.can_out or cfg.sinks.can_out:
         pipeline.sinks.append(CanSink(bus))
@@ -80,7 +90,11 @@ def run(args: argparse.Namespace) -> int:
         pipeline.close()
         source.close()
         notifier.close()
+        if gnss is not None:
+            gnss.close()
     summary = pipeline.summary()
     summary["bus_errors"] = source.errors
+    if gnss is not None:
+        summary["gnss_input"] = gnss.summary()
     extra_lines = [f"bus receive errors: {source.errors} (last: {source.last_error})"] if source.errors else []
     return report_run(pipeline, summary, args.summary_json, extra_lines)

@@ -77,7 +77,7 @@ def file_sinks(cfg: RuntimeConfig) -> list:
     return sinks
 
 
-def build_pipeline(cfg: RuntimeConfig, extra_sinks: list | None = None) -> Pipeline:
+def build_pipeline(cfg: RuntimeConfig, extra_sinks: list | None = None, external_gnss: bool = False) -> Pipeline:
     """Everything the config names, loaded and cross-checked (one-line errors on any mismatch)."""
     model_path = cfg.model.path
     if cfg.model.sha256 is not None:
@@ -92,7 +92,8 @@ def build_pipeline(cfg: RuntimeConfig, extra_sinks: list | None = None) -> Pipel
                               mu=cfg.signals.mu,
                               stale_periods=cfg.signals.stale_periods, initial_pose=initial_pose, sinks=sinks,
                               trt_cache_dir=cfg.model.trt_cache_dir, trt_fp16=cfg.model.trt_fp16,
-                              calibration=cfg.calibration.enabled, calibration_file=cfg.calibration.file)
+                              calibration=cfg.calibration.enabled, calibration_file=cfg.calibration.file,
+                              external_gnss=external_gnss)
     except BaseException:
         for sink in sinks:
             sink.close()
@@ -112,6 +113,8 @@ def summary_lines(summary: dict) -> list[str]:
                  f"{fr['rejected']} rejected ({rejected}); balanced: {'yes' if fr['balanced'] else 'NO'}")
     if fr["late_applied"] or fr["counter_gaps"]:
         lines.append(f"late frames applied {fr['late_applied']}, counter gaps {fr['counter_gaps']}")
+    for line in summary.get("signals_missing") or []:
+        lines.append(f"WARNING signal never received: {line}")
     faults = [f"{n} {fr[k]}" for k, n in (("error_frames", "error frames"), ("remote_frames", "remote frames"),
                                           ("clock_jumps", "clock jumps back")) if fr.get(k)]
     if summary.get("bus_silent_rows"):

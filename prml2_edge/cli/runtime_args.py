@@ -41,3 +41,21 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
                    help="write an MCAP file for Foxglove Studio: pose, transform, covariance, z with sigma, signals "
                         "with validity, GNSS fixes, status and flags (readable up to its last 1 s chunk after a crash)")
     s.add_argument("--summary-json", metavar="PATH", help="write the end-of-run summary as JSON")
+
+
+def add_gnss_arguments(parser: argparse.ArgumentParser, live: bool) -> None:
+    """``--gnss`` and its options: fixes from a receiver (live) or a recorded file (replay)."""
+    g = parser.add_argument_group("GNSS fixes from a receiver (not the CAN bus)")
+    if live:
+        g.add_argument("--gnss", metavar="SOURCE",
+                       help="gpsd://HOST[:PORT] (gpsd's JSON protocol, port 2947) or a serial NMEA receiver "
+                            "(/dev/ttyACM0, serial:///dev/ttyUSB0?baud=38400); fixes are stamped on receipt")
+    else:
+        g.add_argument("--gnss", metavar="FILE",
+                       help="fixes merged with the CAN log by time: an NMEA log (GGA/RMC, UTC times), a CSV "
+                            "(t_s,x_m,y_m[,heading_deg]) or a TUM file (local metres; the quaternion's yaw is the "
+                            "course)")
+        g.add_argument("--gnss-time-offset", type=float, default=0.0, metavar="S",
+                       help="seconds added to the fixes' times when their clock differs from the CAN log's")
+    g.add_argument("--gnss-origin", metavar="LAT,LON",
+                   help="origin of the local east/north frame for latitude/longitude (default: the first fix)")

@@ -286,7 +286,7 @@ def _read_meta(path: Path) -> dict:
         raise DataError(f"{meta_path}: not valid JSON ({exc.msg} at line {exc.lineno})") from exc
 
 
-def load_drive(path: str | Path, *, require_ground_truth: bool = False) -> Drive:
+def load_drive(path: str | Path, *, require_ground_truth: bool = False, check_conventions: bool = True) -> Drive:
     """Load a ReV-StED-schema CSV into a :class:`Drive` (SI units; see the module docstring).
 
     Parameters
@@ -296,6 +296,9 @@ def load_drive(path: str | Path, *, require_ground_truth: bool = False) -> Drive
         supplies ``meta`` when present.
     require_ground_truth : bool
         Raise :class:`DataError` when the ground-truth columns are absent.
+    check_conventions : bool
+        Refuse a file whose sign conventions differ from the documented ones, checked from physics
+        (:mod:`prml2_edge.data.conventions`), naming the column and the fix.
 
     Returns
     -------
@@ -329,8 +332,15 @@ def load_drive(path: str | Path, *, require_ground_truth: bool = False) -> Drive
 
     z_gt, pose_gt = _ground_truth(path, col, column, require_ground_truth)
     meta = _read_meta(path)
-    return Drive(name=path.stem, path=path, t_s=t_s, onboard=onboard, z_gt=z_gt, pose_gt=pose_gt,
-                 meta=meta, repairs=repairs)
+    drive = Drive(name=path.stem, path=path, t_s=t_s, onboard=onboard, z_gt=z_gt, pose_gt=pose_gt,
+                  meta=meta, repairs=repairs)
+    if check_conventions:
+        from prml2_edge.data.conventions import first_failure
+
+        bad = first_failure(drive, set(header))
+        if bad is not None:
+            raise DataError(bad.line() + " (prml2 doctor --data FILE lists every check)")
+    return drive
 
 
 def _fmt_for_step(step: float) -> str:

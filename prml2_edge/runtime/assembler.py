@@ -31,6 +31,11 @@ while the car moves (speedometer >= ``min_speed_mps``) and a witness signal move
 than its span is frozen; it stays invalid until its value changes (``AssembledRow.newly_frozen``
 counts the episodes). The default check is the yaw rate against the steering wheel angle and
 the lateral acceleration: a turning car whose yaw rate does not move has a stuck gyro.
+
+Substitutes: a signal the car lacks (a map's ``absent = true``) holds its constant
+``substitute`` in every row, valid, age 0; a ``wheel_deceleration`` substitute is
+``idle + per_mps2 * max(0, -a)`` with ``a`` the change of the rows' mean wheel speed over the
+last :data:`DECEL_LAG_ROWS` rows (0 until there are that many; restarted at a re-anchor).
 """
 
 from __future__ import annotations
@@ -66,9 +71,18 @@ class StuckCheck:
 # Simulated drives (seed 3, 5, 11; up to 50 s without a yaw-rate step) stay below 0.16 rad and
 # 0.45 m/s^2 while the yaw rate holds, so a healthy sensor does not trip it.
 _SIG = {name: s.index for name, s in schema.SIGNAL_BY_NAME.items()}
+DECEL_LAG_ROWS = 10  # wheel_deceleration substitute: speed change over 0.2 s
 _SPEEDOMETER = _SIG["speedometer_mps"]
 YAW_RATE_STUCK = StuckCheck(index=_SIG["yaw_rate_radps"], hold_s=1.0,
                             witness=(_SIG["steering_wheel_angle_rad"], _SIG["lat_accel_mps2"]), span=(0.35, 2.0))
+
+
+def wheel_deceleration_substitute(onboard: np.ndarray, idle: float, per_mps2: float) -> np.ndarray:
+    """(N,) the ``wheel_deceleration`` substitute over 50 Hz rows ``onboard`` (N, 9), as the assembler streams it."""
+    v = np.asarray(onboard)[:, list(schema.WHEEL_SPEED_INDICES)].mean(axis=1)
+    a = np.zeros_like(v)
+    a[DECEL_LAG_ROWS:] = (v[DECEL_LAG_ROWS:] - v[:-DECEL_LAG_ROWS]) / (DECEL_LAG_ROWS * schema.DT_S)
+    return idle + per_mps2 * np.clip(-a, 0.0, None)
 
 
 class Assembler:
@@ -94,11 +108,17 @@ class Assembler:
         A frame older than the newest frame by more than this is a clock jump, not jitter [s].
     stuck_checks:
         Stuck-sensor checks (default: :data:`YAW_RATE_STUCK`; ``()`` turns them off).
+    substitutes:
+        ``{canonical index: SI value}`` for signals the car lacks: held in every row, always valid.
+    decel_substitutes:
+        ``{canonical index: (idle, per_mps2)}``: substitutes derived from the wheels' deceleration.
     """
 
     def __init__(self, rate_hz, stale_periods: float = 3.0, dt_s: float = schema.DT_S, max_gap_s: float = 5.0,
                  eps_s: float = 1e-4, bus_silent_s: float = 3 * schema.DT_S,
-                 max_backstep_s: float = 0.25, stuck_checks: tuple[StuckCheck, ...] = (YAW_RATE_STUCK,)) -> None:
+                 max_backstep_s: float = 0.25, stuck_checks: tuple[StuckCheck, ...] = (YAW_RATE_STUCK,),
+                 substitutes: dict[int, float] | None = None,
+                 decel_substitutes: dict[int, tuple[float, float]] | None = None) -> None:
         rate = np.asarray(rate_hz, dtype=np.float64)
         if rate.shape != (schema.NUM_SIGNALS,) or not np.all(rate > 0):
             raise ValueError(f"rate_hz must be ({schema.NUM_SIGNALS},) positive, got {rate!r}")
@@ -120,6 +140,15 @@ class Assembler:
         self.values = np.zeros(schema.NUM_SIGNALS)
         self.last_t_s = np.full(schema.NUM_SIGNALS, -math.inf)
         self.quality_ok = np.zeros(schema.NUM_SIGNALS, dtype=bool)
+        self.substituted = np.zeros(schema.NUM_SIGNALS, dtype=bool)
+        for index, value in (substitutes or {}).items():
+            self.substituted[index] = True
+            self.values[index] = float(value)
+        self.decel_substitutes = dict(decel_substitutes or {})
+        for index, (idle, _) in self.decel_substitutes.items():
+            self.substituted[index] = True
+            self.values[index] = float(idle)
+        self._wheel_history: list[float] = []  # mean wheel speed of the last rows (decel substitutes)
         self._t0: float | None = None
         self._k_next = 0  # index of the next row to emit
         self._pending_gnss: GnssFix | None = None
@@ -128,8 +157,13 @@ class Assembler:
 
     @classmethod
     def for_map(cls, signal_map, **kwargs) -> Assembler:
-        """An assembler with the rates of ``signal_map`` (canonical order)."""
-        return cls([s.rate_hz for s in signal_map.signals], **kwargs)
+        """An assembler with the rates of ``signal_map`` (canonical order) and its absent signals' substitutes."""
+        subs = {schema.SIGNAL_BY_NAME[s.name].index: s.substitute for s in signal_map.signals
+                if s.absent and s.substitute_kind == "constant"}
+        decel = {schema.SIGNAL_BY_NAME[s.name].index: (s.substitute, s.substitute_per_mps2) for s in signal_map.signals
+                 if s.absent and s.substitute_kind == "wheel_deceleration"}
+        return cls([s.rate_hz for s in signal_map.signals], substitutes=subs or None, decel_substitutes=decel or None,
+                   **kwargs)
 
     def _t(self, k: int) -> float:
         return self._t0 + k * self.dt_s  # type: ignore[operator]
@@ -142,8 +176,13 @@ class Assembler:
     def _emit(self, trigger_ns: int) -> AssembledRow:
         k = self._k_next
         t_k = self._t(k)
+        if self.decel_substitutes:
+            self._update_decel()
         age = t_k - self.last_t_s
         valid = self.quality_ok & (age <= self.stale_after_s + self.eps_s)
+        if self.substituted.any():
+            age[self.substituted] = 0.0
+            valid |= self.substituted
         newly_frozen: tuple[int, ...] = ()
         if self.stuck_checks:
             newly_frozen = self._check_stuck(t_k)
@@ -213,6 +252,32 @@ class Assembler:
         frame.late_applied = late
         return status, rows
 
+    def _update_decel(self) -> None:
+        """The wheel-deceleration substitutes for the row about to be emitted (causal: this row and older ones)."""
+        hist = self._wheel_history
+        hist.append(float(np.mean(self.values[list(schema.WHEEL_SPEED_INDICES)])))
+        if len(hist) > DECEL_LAG_ROWS + 1:
+            del hist[0]
+        a = (hist[-1] - hist[0]) / (DECEL_LAG_ROWS * self.dt_s) if len(hist) == DECEL_LAG_ROWS + 1 else 0.0
+        for index, (idle, gain) in self.decel_substitutes.items():
+            self.values[index] = idle + gain * max(0.0, -a)
+
+    def add_gnss(self, fix: GnssFix, recv_ns: int = 0) -> list[AssembledRow]:
+        """A fix from outside the bus (NMEA, gpsd, a file of fixes), as if a GNSS frame with its time arrived:
+        the rows before it are emitted, then it rides on the next row. It never starts, re-anchors or re-bases
+        the grid (only CAN frames do): a fix before the first frame waits for it, one later than the bus's
+        gap limit is held for the row that comes."""
+        rows: list[AssembledRow] = []
+        t = fix.t_s
+        if not math.isfinite(t):
+            return rows
+        if self._t0 is not None and t - self._t(self._k_next) <= self.max_gap_s:
+            while t > self._t(self._k_next) + self.eps_s:
+                rows.append(self._emit(recv_ns))
+        if self._pending_gnss is None or t >= self._pending_gnss.t_s:
+            self._pending_gnss = fix
+        return rows
+
     def _reanchor(self, t: float) -> None:
         self._t0 = t
         self._k_next = 0
@@ -220,6 +285,7 @@ class Assembler:
         self.resyncs += 1
         self.last_t_s[:] = -math.inf  # everything held is stale until its signal arrives again
         self.last_frame_t_s = t
+        self._wheel_history.clear()
         for index in self._stuck_since:
             self._stuck_since[index] = t
 
@@ -268,9 +334,10 @@ class Assembler:
     def max_signal_age_s(self) -> float | None:
         """Age [s] of the oldest held signal at the last emitted row (None before the first row or any value)."""
         t_row = self.last_row_t_s
-        if t_row is None or not np.isfinite(self.last_t_s).any():
+        held = self.last_t_s[~self.substituted]
+        if t_row is None or not np.isfinite(held).any():
             return None
-        return float(np.max(t_row - self.last_t_s))
+        return float(np.max(t_row - held))
 
     def summary(self) -> dict:
         """The assembler's part of the end-of-run summary."""

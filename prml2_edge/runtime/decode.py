@@ -30,6 +30,7 @@ from prml2_edge.runtime.status import FrameStatus
 class _SignalPlan:
     index: int  # canonical index
     signal: str
+    parts: tuple[tuple[str, float], ...] | None  # summed (signal, part scale) pairs; None: just ``signal``
     to_si: Callable[[float, int], float]  # SignalSpec.to_si, bound once
     sign: str | None
     valid: str | None
@@ -52,6 +53,7 @@ class _MessagePlan:
     checksum_fn: object = None
     gnss: object = None  # GnssSpec when this message carries the GNSS fix
     last_counter: int | None = None
+    min_length: int | None = None  # shortest payload accepted (maps with short_frames): holds every mapped bit
 
 
 class FrameDecoder:
@@ -71,13 +73,16 @@ class FrameDecoder:
     def __init__(self, signal_map: SignalMap, db: cantools.database.can.Database, max_counter_jump: int = 7) -> None:
         self.max_counter_jump = max_counter_jump
         self.plans: dict[int, _MessagePlan] = {}
-        for spec in signal_map.signals:
+        for spec in signal_map.present:
             plan = self._plan(signal_map, db, spec.message)
             sig = schema.SIGNAL_BY_NAME[spec.name]
-            plan.signals.append(_SignalPlan(sig.index, spec.signal, spec.to_si, spec.sign, spec.valid,
-                                            spec.valid_value, sig.min, sig.max))
+            plan.signals.append(_SignalPlan(sig.index, spec.signal, spec.parts or None, spec.to_si, spec.sign,
+                                            spec.valid, spec.valid_value, sig.min, sig.max))
         if signal_map.gnss is not None:
             self._plan(signal_map, db, signal_map.gnss.message).gnss = signal_map.gnss
+        if signal_map.short_frames:
+            for plan in self.plans.values():
+                plan.min_length = _bytes_needed(plan, signal_map)
 
     def _plan(self, signal_map: SignalMap, db: cantools.database.can.Database, name: str) -> _MessagePlan:
         msg = db.get_message_by_name(name)
@@ -107,9 +112,11 @@ class FrameDecoder:
             return DecodedFrame(FrameStatus.IGNORED, t_s)
         data = msg.data
         if len(data) != plan.length:
-            return DecodedFrame(FrameStatus.REJECTED_DLC, t_s, plan.name)
+            if plan.min_length is None or not plan.min_length <= len(data) < plan.length:
+                return DecodedFrame(FrameStatus.REJECTED_DLC, t_s, plan.name)
         try:
-            decoded = plan.message.decode(bytes(data), decode_choices=False)
+            payload = bytes(data) if len(data) == plan.length else bytes(data) + bytes(plan.length - len(data))
+            decoded = plan.message.decode(payload, decode_choices=False)
         except Exception:  # cantools raises several types on malformed data
             return DecodedFrame(FrameStatus.REJECTED_DECODE, t_s, plan.name)
         if plan.checksum is not None:
@@ -131,7 +138,8 @@ class FrameDecoder:
         out = DecodedFrame(FrameStatus.USED, t_s, plan.name, counter_gap=gap)
         n_out_of_range = n_nonfinite = n_invalid = 0
         for sp in plan.signals:
-            value = sp.to_si(decoded[sp.signal], decoded[sp.sign] if sp.sign is not None else 0)
+            physical = decoded[sp.signal] if sp.parts is None else sum(decoded[p] * w for p, w in sp.parts)
+            value = sp.to_si(physical, decoded[sp.sign] if sp.sign is not None else 0)
             ok = sp.valid is None or int(decoded[sp.valid]) == sp.valid_value
             if not math.isfinite(value):
                 out.flagged.append((sp.index, "nonfinite"))
@@ -159,6 +167,31 @@ class FrameDecoder:
                 out.status = FrameStatus.REJECTED_NONFINITE
         return out
 
+
+
+def _bytes_needed(plan: _MessagePlan, signal_map: SignalMap) -> int:
+    """Bytes a payload must have to hold every signal the map reads from this message (and its checks)."""
+    names = set()
+    for sp in plan.signals:
+        names |= {p for p, _ in (sp.parts or ((sp.signal, 1.0),))} | {x for x in (sp.sign, sp.valid) if x}
+    names |= {x for x in (plan.counter, plan.checksum) if x}
+    g = plan.gnss
+    if g is not None:
+        names |= {x for x in (g.x, g.y, g.heading, g.valid) if x}
+    last_byte = 0
+    for name in names:
+        sig = plan.message.get_signal_by_name(name)
+        if sig.byte_order == "little_endian":
+            end_bit = sig.start + sig.length - 1
+        else:  # big endian (Motorola): start is the MSB; walk down ``length`` bits in DBC bit order
+            byte, bit = divmod(sig.start, 8)
+            remaining = sig.length - 1
+            while remaining > bit:
+                remaining -= bit + 1
+                byte, bit = byte + 1, 7
+            end_bit = byte * 8 + (bit - remaining)
+        last_byte = max(last_byte, end_bit // 8)
+    return last_byte + 1
 
 
 def _gnss(spec, decoded: dict, t_s: float) -> GnssFix:

@@ -92,8 +92,17 @@ class _Window:
     e2e_index: int = 0
 
 
+MISSING_PERIODS = 5.0  # a mapped signal without a value this many of its periods after the first frame is missing
+MISSING_MIN_S = 0.25  # ... and at least this long [s]
+
+
 class Pipeline:
-    """Decoder -> assembler -> localiser -> sinks, with frame accounting and latency per stage."""
+    """Decoder -> assembler -> localiser -> sinks, with frame accounting and latency per stage.
+
+    Nothing fails silently: a mapped signal that has no value :data:`MISSING_PERIODS` of its
+    periods (at least :data:`MISSING_MIN_S`) after the first frame gets one warning line naming
+    the signal, its message and ID (:meth:`missing_signals` lists them for the summary).
+    """
 
     def __init__(self, signal_map: SignalMap, decoder: FrameDecoder, assembler: Assembler,
                  localizer: StreamingLocalizer, sinks: Sequence = (), stats: FrameStats | None = None,
@@ -114,6 +123,17 @@ class Pipeline:
         self._t_wall0 = time.monotonic()
         self._interval = _Window(self._t_wall0)
         self._last_frame_wall = self._t_wall0
+        self.invalid_rows = np.zeros(schema.NUM_SIGNALS, dtype=np.int64)  # rows each signal was invalid in
+        self._missing_after_s = np.full(schema.NUM_SIGNALS, np.inf)  # when a signal without a value is missing
+        self._where: dict[int, str] = {}  # canonical index -> "message MSG (ID 0x..)"
+        for spec in signal_map.present:
+            i = schema.SIGNAL_BY_NAME[spec.name].index
+            self._missing_after_s[i] = max(MISSING_PERIODS / spec.rate_hz, MISSING_MIN_S)
+            plan = next((p for p in decoder.plans.values() if p.name == spec.message), None)
+            ident = f", ID {plan.frame_id:#x}" if plan is not None else ""
+            self._where[i] = f"{spec.message}.{'+'.join(n for n, _ in spec.summed_parts)}{ident}"
+        self._warned_missing = ~np.isfinite(self._missing_after_s)  # absent signals are never missing
+        self.gnss_sources: list = []  # objects with due(t_s) -> fixes (runtime.gnss_input), merged by time
 
     @classmethod
     def build(cls, map: str | Path = "prml2_onboard", dbc: str | Path | None = None,
@@ -122,17 +142,18 @@ class Pipeline:
               stride: int = 1, mu: float = 1.0, stale_periods: float = 3.0,
               initial_pose: InitialPose | None = None, sinks: Sequence = (),
               localizer_config: LocalizerConfig | None = None, trt_cache_dir: str = "~/.cache/prml2/trt",
-              trt_fp16: bool = False, calibration: bool = True, calibration_file: str | Path | None = None
-              ) -> Pipeline:
+              trt_fp16: bool = False, calibration: bool = True, calibration_file: str | Path | None = None,
+              external_gnss: bool = False) -> Pipeline:
         """Load and cross-check map, DBC and model; refuse mismatches at start-up with what differs.
 
         ``initial_pose`` None means: take it from the first GNSS fix on the bus, which needs a map
-        with a ``[gnss]`` table.
+        with a ``[gnss]`` table, or ``external_gnss`` (fixes from ``--gnss``, see :meth:`add_gnss_source`).
         """
         signal_map, db, dbc_path = load_map_and_dbc(resolve_map(map), dbc)
-        if initial_pose is None and signal_map.gnss is None:
+        if initial_pose is None and signal_map.gnss is None and not external_gnss:
             raise ConfigError(f"signal map {signal_map.name!r} defines no GNSS fix message, so the initial pose "
-                              "cannot come from the bus: give --initial-pose X,Y,HEADING_DEG or --initial-pose-file")
+                              "cannot come from the bus: give --gnss SOURCE, --initial-pose X,Y,HEADING_DEG or "
+                              "--initial-pose-file")
         if not isinstance(model, OnnxModel):
             model = OnnxModel(model if model is not None else default_model_path(), threads=threads,
                               providers=providers, trt_cache_dir=trt_cache_dir, trt_fp16=trt_fp16,
@@ -173,6 +194,7 @@ class Pipeline:
         """One frame in; the 50 Hz outputs it completed out (usually none or one). Never raises on bad data."""
         t0 = time.perf_counter_ns()
         recv_ns = t0 if recv_ns is None else recv_ns
+        outs = self._gnss_due(float(msg.timestamp), recv_ns) if self.gnss_sources else []
         frame = self.decoder.step(msg)
         t1 = time.perf_counter_ns()
         status, rows = self.assembler.step(frame, recv_ns)
@@ -183,16 +205,71 @@ class Pipeline:
         lat.add("assemble", t2 - t1)
         self._interval.frames += 1
         self._last_frame_wall = time.monotonic()
-        return [self._row(row) for row in rows] if rows else []
+        if rows:
+            outs += [self._row(row) for row in rows]
+        return outs
+
+    def add_gnss_source(self, source) -> None:
+        """Merge fixes from ``source`` (``due(t_s)`` returns those up to frame time ``t_s``) into the stream."""
+        self.gnss_sources.append(source)
+
+    def _gnss_due(self, t_s: float, recv_ns: int) -> list[StepOutput]:
+        outs = []
+        for source in self.gnss_sources:
+            for fix in source.due(t_s):
+                if fix.valid:
+                    self.stats.gnss_fixes += 1
+                else:
+                    self.stats.gnss_invalid += 1
+                outs += [self._row(row) for row in self.assembler.add_gnss(fix, recv_ns)]
+        return outs
 
     def finish(self) -> list[StepOutput]:
         """End of stream: emit the last row(s) still held by the assembler."""
         return [self._row(row) for row in self.assembler.flush()]
 
+    def missing_signals(self, t_s: float | None = None) -> list[str]:
+        """One line per mapped signal that has had no value by ``t_s`` (default: the last row), naming its
+        message and ID and what happened to the frames of that message, if any arrived."""
+        if self.first_t_s is None:
+            return []
+        t_s = self.last.t_s if t_s is None and self.last is not None else (t_s or self.first_t_s)
+        never = ~np.isfinite(self.assembler.last_t_s) & (t_s - self.first_t_s >= self._missing_after_s)
+        lines = []
+        for i in np.flatnonzero(never):
+            where = self._where[int(i)]
+            message = where.split(".", 1)[0]
+            rejected = self.stats.rejected_by_message.get(message)
+            if rejected:
+                seen = "frames of it arrived but were all rejected (" + ", ".join(
+                    f"{k} {v}" for k, v in rejected.items()) + ")"
+            elif self.stats.by_message.get(message):
+                seen = "its message arrived but the value was never valid"
+            else:
+                seen = "no frame of that message is on this bus"
+            lines.append(f"{schema.SIGNAL_NAMES[i]} ({where}): {seen}")
+        return lines
+
+    def _warn_missing(self, t_s: float) -> None:
+        self._warned_missing |= np.isfinite(self.assembler.last_t_s)  # seen: nothing to warn about, ever
+        due = ~self._warned_missing & ~np.isfinite(self.assembler.last_t_s) & \
+            (t_s - self.first_t_s >= self._missing_after_s)  # type: ignore[operator]
+        if not due.any():
+            return
+        self._warned_missing |= due
+        for line in self.missing_signals(t_s):
+            name = line.split(" ", 1)[0]
+            if due[schema.SIGNAL_BY_NAME[name].index]:
+                log.warning("no value of %s %.2f s after the first frame; check the map's message and the DBC "
+                            "against this bus (prml2 doctor --log LOG)", line, t_s - self.first_t_s)
+
     def _row(self, row: AssembledRow) -> StepOutput:
         self.stats.add_row(row)
         if self.first_t_s is None:
             self.first_t_s = row.t_s
+        self.invalid_rows += ~row.valid
+        if not self._warned_missing.all():
+            self._warn_missing(row.t_s)
         out = self.localizer.step(row.values, row.valid, row.t_s, row.gnss, row.discontinuity, row.bus_silent)
         if out.inferred:
             self.latency.add("infer", out.infer_ns)
@@ -213,6 +290,24 @@ class Pipeline:
         if self.calibration_file is not None and self.calibration_file.due(out.t_s):
             self._save_calibration(out.t_s)
         return out
+
+    def model_never_ran(self) -> str | None:
+        """Why the model never ran on this stream (one line), or None when it did."""
+        if self.localizer.n_model_used:
+            return None
+        missing = self.missing_signals()
+        if missing:
+            return "the model never ran: " + "; ".join(missing)
+        window_s = getattr(self.localizer.model, "window_len", 250) * schema.DT_S
+        data_s = (self.last.t_s - self.first_t_s) if self.last is not None and self.first_t_s is not None else 0.0
+        if data_s < window_s:
+            return f"the model never ran: the log covers {data_s:.1f} s, less than the model's {window_s:.0f} s window"
+        if self.rows and self.invalid_rows.any():
+            worst = np.argsort(-self.invalid_rows)[:3]
+            parts = [f"{schema.SIGNAL_NAMES[i]} invalid in {100.0 * self.invalid_rows[i] / self.rows:.0f} % of rows"
+                     for i in worst if self.invalid_rows[i]]
+            return "the model never ran: no 5 s window had valid inputs (" + ", ".join(parts) + ")"
+        return "the model never ran (no inference succeeded; see the latency and inference counts)"
 
     def close(self) -> None:
         self._save_calibration(self.last.t_s if self.last is not None else None)
@@ -282,6 +377,7 @@ class Pipeline:
             "model": getattr(model, "describe", lambda: type(model).__name__)(),
             "frames": self.stats.as_dict(),
             "rows": self.rows, "grid_resyncs": assembler["grid_resyncs"], "bus_silent_rows": self.bus_silent_rows,
+            "signals_missing": self.missing_signals(),
             "signal_faults": {"frozen_now": assembler["frozen_now"],
                               "frozen_episodes": {n: c for n, c in zip(schema.SIGNAL_NAMES, self.stats.signal_frozen,
                                                                         strict=True) if c}},

@@ -27,6 +27,7 @@ class FrameStats:
     received: int = 0
     by_status: list[int] = field(default_factory=lambda: [0] * len(FrameStatus))
     by_message: dict[str, int] = field(default_factory=dict)  # used frames per message name
+    rejected_by_message: dict[str, dict[str, int]] = field(default_factory=dict)  # message -> reason -> frames
     signal_updates: list[int] = field(default_factory=_zeros)  # values applied to the hold
     signal_out_of_range: list[int] = field(default_factory=_zeros)
     signal_nonfinite: list[int] = field(default_factory=_zeros)
@@ -47,6 +48,10 @@ class FrameStats:
         self.by_status[status] += 1
         if status is FrameStatus.USED and message is not None:
             self.by_message[message] = self.by_message.get(message, 0) + 1
+        elif status.is_rejected and message is not None:
+            reasons = self.rejected_by_message.setdefault(message, {})
+            reason = status.name.removeprefix("REJECTED_").lower()
+            reasons[reason] = reasons.get(reason, 0) + 1
 
     def add_frame(self, status: FrameStatus, frame: DecodedFrame) -> None:
         """Count one frame: its final ``status`` and what the decoder and assembler noted on it."""
@@ -111,5 +116,6 @@ class FrameStats:
             "late_applied": self.late_applied, "counter_gaps": self.counter_gaps,
             "error_frames": self.error_frames, "remote_frames": self.remote_frames, "clock_jumps": self.clock_jumps,
             "gnss_fixes": self.gnss_fixes, "gnss_invalid": self.gnss_invalid,
-            "used_by_message": dict(self.by_message), "signals": per_signal,
+            "used_by_message": dict(self.by_message),
+            "rejected_by_message": {m: dict(r) for m, r in self.rejected_by_message.items()}, "signals": per_signal,
         }
