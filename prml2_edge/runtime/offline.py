@@ -131,8 +131,9 @@ def run_windows(session, output_names, input_name, output_rows: int, array: np.n
         if m.shape != (len(sel), output_rows, schema.NUM_STATES) or v.shape != m.shape:
             status[b:b + len(sel)] = int(InferenceStatus.INVALID_OUTPUT)
             continue
-        m, v = m[:, -1], v[:, -1]  # the runtime consumes the newest decoder row only
-        bad = ~(np.isfinite(m).all(axis=1) & np.isfinite(v).all(axis=1) & (v > 0).all(axis=1))
+        # checked over every row, as OnnxModel.step does; the runtime consumes the newest decoder row only
+        bad = ~(np.isfinite(m).all(axis=(1, 2)) & np.isfinite(v).all(axis=(1, 2)) & (v > 0).all(axis=(1, 2)))
+        m, v = m[:, -1], v[:, -1]
         status[b:b + len(sel)][bad] = int(InferenceStatus.INVALID_OUTPUT)
         mean[b:b + len(sel)] = m
         var[b:b + len(sel)] = v
@@ -358,8 +359,8 @@ def run_offline(pipeline, path: str | Path, batch: int = 1, workers: int | None 
 
     ``pipeline`` is a fresh :class:`~prml2_edge.runtime.pipeline.Pipeline`; afterwards its sinks, summary and
     frame accounting are as after :func:`~prml2_edge.runtime.pipeline.run_source` on the same log (only the
-    per-stage latencies are not measured: stages do not run per frame; ``pipeline.offline_timing`` has the
-    time per stage instead). ``progress`` is advanced per frame, ``on_rows(n)`` per piece filtered.
+    per-stage latencies are not measured: stages do not run per frame; see the
+    time per stage in ``pipeline.offline``). ``progress`` is advanced per frame, ``on_rows(n)`` per piece filtered.
     """
     t_start = time.perf_counter()
     loc = pipeline.localizer
@@ -426,8 +427,9 @@ def run_offline(pipeline, path: str | Path, batch: int = 1, workers: int | None 
         pre.close()
     timing = {"decode_assemble": t_assemble, "filter": t_filter - pre.wait_s, "inference_workers": pre.worker_s,
               "filter_waited_for_inference": pre.wait_s, "total": time.perf_counter() - t_start}
-    pipeline.offline_timing = timing
-    pipeline.offline_model = pre.describe()
+    pipeline.latency.clear("infer")  # it timed handing out precomputed outputs, not the model
+    pipeline.offline = {"model": pre.describe(), "windows": len(pre.scheduled), "workers": pre.workers,
+                        "batch": pre.batch, "timing_s": timing}
     return OfflineResult(problem, n_frames, values.n, len(pre.scheduled), timing)
 
 
