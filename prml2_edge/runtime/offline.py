@@ -354,13 +354,15 @@ class OfflineResult:
 
 def run_offline(pipeline, path: str | Path, batch: int = 1, workers: int | None = None, progress=None,
                 verify: bool = False, chunk_frames: int = CHUNK_FRAMES,
-                on_rows: Callable[[int], None] | None = None) -> OfflineResult:
+                on_rows: Callable[[int], None] | None = None,
+                on_row: Callable[[AssembledRow, object], None] | None = None) -> OfflineResult:
     """Replay the log ``path`` through ``pipeline`` on the offline schedule (module docstring).
 
     ``pipeline`` is a fresh :class:`~prml2_edge.runtime.pipeline.Pipeline`; afterwards its sinks, summary and
     frame accounting are as after :func:`~prml2_edge.runtime.pipeline.run_source` on the same log (only the
     per-stage latencies are not measured: stages do not run per frame; see the
-    time per stage in ``pipeline.offline``). ``progress`` is advanced per frame, ``on_rows(n)`` per piece filtered.
+    time per stage in ``pipeline.offline``). ``progress`` is advanced per frame, ``on_rows(n)`` per piece filtered;
+    ``on_row(row, out)`` sees every assembled row with its :class:`StepOutput` (``prml2 fleet``'s GNSS drift).
     """
     t_start = time.perf_counter()
     loc = pipeline.localizer
@@ -387,7 +389,9 @@ def run_offline(pipeline, path: str | Path, batch: int = 1, workers: int | None 
     def filter_block(block: RowBlock) -> None:
         for j, row in enumerate(block.rows):
             pre.row = block.start + j
-            pipeline._row(row)
+            out = pipeline._row(row)
+            if on_row is not None:
+                on_row(row, out)
         if on_rows is not None:
             on_rows(len(block.rows))
 
