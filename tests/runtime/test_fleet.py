@@ -84,3 +84,16 @@ def test_fleet_without_the_extra_says_what_to_install(monkeypatch, tmp_path, cap
 def test_fleet_refuses_a_bad_model_before_starting_a_cluster(logs, tmp_path, capsys):
     assert main(["fleet", str(logs[0][0]), "--out", str(tmp_path), "--model", str(tmp_path / "no.onnx")]) == 1
     assert "model file not found" in capsys.readouterr().err
+
+
+def test_fleet_on_an_existing_cluster_by_address(logs, tmp_path, capsys):
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None,
+                      scheduler_kwargs={"dashboard": False}) as cluster:
+        out = tmp_path / "remote"
+        assert main(["fleet", str(logs[0][1]), "--out", str(out), "--address", cluster.scheduler_address]) == 0
+    assert cluster.scheduler_address in capsys.readouterr().out
+    assert [r["status"] for r in read_table(out)["logs"]] == ["ok"]
+    assert main(["fleet", str(logs[0][1]), "--out", str(out), "--address", "tcp://127.0.0.1:1", "--workers", "2"]) == 1
+    assert "--workers sizes the local cluster" in capsys.readouterr().err
