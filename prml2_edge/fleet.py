@@ -155,7 +155,11 @@ def replay_one(log: str, out_root: str, build: dict) -> dict:
             raise ValueError(problem)
         sink = TumSink(out_dir / "pose.tum")
         drift = GnssDrift()
-        pipeline = Pipeline.build(**build, sinks=[sink])
+        try:
+            pipeline = Pipeline.build(**build, sinks=[sink])
+        except BaseException:
+            sink.close()  # a long-lived cluster worker must not keep the file open
+            raise
         try:
             result = run_offline(pipeline, log, workers=1, on_row=drift)
         finally:
