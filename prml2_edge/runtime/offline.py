@@ -86,7 +86,7 @@ class RowBlock:
 
 
 class _Values:
-    """Every row's values as float32 (what the window holds), growing; workers read slices of it."""
+    """Every row's values as float32 (what the window holds), growing; a task gets a copy of the slice it needs."""
 
     def __init__(self) -> None:
         self.array = np.zeros((4096, schema.NUM_SIGNALS), dtype=np.float32)
@@ -97,7 +97,7 @@ class _Values:
         if need > len(self.array):
             grown = np.zeros((max(need, 2 * len(self.array)), schema.NUM_SIGNALS), dtype=np.float32)
             grown[:self.n] = self.array[:self.n]
-            self.array = grown  # a worker still reading the old array keeps it alive; its rows are final
+            self.array = grown
         for j, row in enumerate(rows):
             self.array[self.n + j] = row.values
         self.n = need
@@ -173,10 +173,10 @@ class _Inline:
     def __init__(self, model, batch: int) -> None:
         self.model, self.batch = model, batch
         self.busy_s = 0.0
+        self._pending: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def submit(self, task_id: int, array: np.ndarray, rows: np.ndarray) -> None:
-        self._pending = getattr(self, "_pending", {})
-        self._pending[task_id] = (array, rows)
+        self._pending[task_id] = (array, rows)  # (rows written before a submit stay in that array)
 
     def result(self, task_id: int):
         array, rows = self._pending.pop(task_id)
