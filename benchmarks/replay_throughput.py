@@ -22,6 +22,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -51,6 +52,24 @@ def rss_mib() -> float:
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024.0
     return float("nan")
+
+
+def cpu_s() -> tuple[float, float]:
+    """CPU time so far [s]: (this process, its reaped children: the offline path's inference workers)."""
+    t = os.times()
+    return t.user + t.system, t.children_user + t.children_system
+
+
+def cpu_fields(before: tuple[float, float], wall_s: float, duration_s: float) -> dict:
+    """CPU seconds of a run (this process and its workers), and what they allow on 2 idle cores: the work
+    spread over both cores, but never faster than this process's own share (its main thread is serial)."""
+    after = cpu_s()
+    own, workers = after[0] - before[0], after[1] - before[1]
+    total = own + workers
+    bound = max(total / 2.0, own)
+    return {"cpu_s": total, "cpu_s_this_process": own, "cpu_s_workers": workers,
+            "cpu_ms_per_driven_s": 1e3 * total / duration_s, "cpu_utilisation": total / wall_s,
+            "x_realtime_2_idle_cores_from_cpu": duration_s / bound}
 
 
 def children_rss_mib() -> float:
@@ -117,9 +136,11 @@ def offline_once(log_path: Path, pose, duration_s: float, model_path: str, threa
     progress = _RssProgress(rss_every)
     rss0 = rss_mib()
     load0 = load_average()
+    c0 = cpu_s()
     t0 = time.perf_counter()
     res = run_offline(pipeline, log_path, workers=workers, progress=progress)
     wall_s = time.perf_counter() - t0
+    cpu = cpu_fields(c0, wall_s, duration_s)
     summ = pipeline.summary()
     rss = [s[2] for s in progress.samples] or [rss0]
     half = rss[len(rss) // 2]
@@ -130,7 +151,7 @@ def offline_once(log_path: Path, pose, duration_s: float, model_path: str, threa
         "source_error": res.problem, "rows": summ["rows"], "inferences": summ["inferences"],
         "frames_balanced": summ["frames"]["balanced"], "wall_s": wall_s, "x_realtime": duration_s / wall_s,
         "rows_per_s": summ["rows"] / wall_s, "per_row_ms": per_row, "load_average": [load0, load_average()],
-        "model": pipeline.offline["model"],
+        "model": pipeline.offline["model"], **cpu,
         "rss": {"before_mib": rss0, "start_mib": rss[0], "half_mib": half, "end_mib": rss[-1], "peak_mib": max(rss),
                 "workers_peak_mib": progress.children_peak_mib, "second_half_growth_mib": growth,
                 "second_half_growth_fraction": growth / half, "flat": growth / half <= targets.RSS_GROWTH_FRACTION},
@@ -143,11 +164,13 @@ def replay_once(log_path: Path, pose, duration_s: float, model_path: str, thread
     progress = _RssProgress(rss_every)
     rss0 = rss_mib()
     load0 = load_average()
+    c0 = cpu_s()
     t0 = time.perf_counter()
     with LogReplay(log_path) as source:
         run_source(pipeline, source, progress=progress)
         sent, received, error = source.sent, source.received, source.error
     wall_s = time.perf_counter() - t0
+    cpu = cpu_fields(c0, wall_s, duration_s)
     summ = pipeline.summary()
     rows = max(summ["rows"], 1)
     lat = summ["latency"]
@@ -167,7 +190,7 @@ def replay_once(log_path: Path, pose, duration_s: float, model_path: str, thread
         "rows": summ["rows"], "inferences": summ["inferences"], "frames_balanced": summ["frames"]["balanced"],
         "wall_s": wall_s, "x_realtime": duration_s / wall_s, "rows_per_s": summ["rows"] / wall_s,
         "frames_per_s": received / wall_s, "per_row_ms": per_row, "load_average": [load0, load_average()],
-        "latency": lat,
+        "latency": lat, **cpu,
         "rss": {"before_mib": rss0, "start_mib": rss[0], "half_mib": half, "end_mib": rss[-1], "peak_mib": max(rss),
                 "second_half_growth_mib": growth, "second_half_growth_fraction": growth / half,
                 "flat": growth / half <= targets.RSS_GROWTH_FRACTION,
@@ -290,7 +313,9 @@ def main(argv: list[str] | None = None) -> int:
                 rss = r["rss"]
                 print(f"streaming, {n} thread(s): replayed {args.minutes:g} min ({r['frames_sent']} frames, "
                       f"{r['rows']} rows) in {r['wall_s']:.1f} s: {r['x_realtime']:.1f} x real time; RSS "
-                      f"{rss['start_mib']:.0f} -> {rss['half_mib']:.0f} -> {rss['end_mib']:.0f} MiB; per row [ms]: "
+                      f"{rss['start_mib']:.0f} -> {rss['half_mib']:.0f} -> {rss['end_mib']:.0f} MiB; CPU "
+                      f"{r['cpu_ms_per_driven_s']:.1f} ms per driven s (2 idle cores would give "
+                      f"{r['x_realtime_2_idle_cores_from_cpu']:.1f} x); per row [ms]: "
                       + ", ".join(f"{k} {v:.3f}" for k, v in r["per_row_ms"].items()))
         elif mode.startswith("offline"):
             workers = int(mode.removeprefix("offline").split("-")[0])
@@ -303,7 +328,8 @@ def main(argv: list[str] | None = None) -> int:
             rss = r["rss"]
             print(f"{mode} ({precision}, {workers} worker(s)): {r['wall_s']:.1f} s: {r['x_realtime']:.1f} x real time; "
                   f"RSS {rss['start_mib']:.0f} -> {rss['end_mib']:.0f} MiB (peak {rss['peak_mib']:.0f}; worker "
-                  f"processes {rss['workers_peak_mib']:.0f} MiB); "
+                  f"processes {rss['workers_peak_mib']:.0f} MiB); CPU {r['cpu_ms_per_driven_s']:.1f} ms per driven s "
+                  f"(2 idle cores would give {r['x_realtime_2_idle_cores_from_cpu']:.1f} x); "
                   "per row [ms]: " + ", ".join(f"{k} {v:.3f}" for k, v in r["per_row_ms"].items()))
         elif mode == "batch":
             batch = batch_calls(bm["fp32"], log_path, [1, 2])

@@ -119,10 +119,14 @@ def throughput_markdown(replay: dict | None, training: dict | None) -> list[str]
             vs = ""
             if "x_vs_streaming" in r and mode != "streaming":
                 vs = f", {r['x_vs_streaming']:.2f} x the streaming replay"
+            cpu = ""
+            if "cpu_ms_per_driven_s" in r:
+                cpu = (f"; CPU {r['cpu_ms_per_driven_s']:.1f} ms per driven s, so on 2 idle cores "
+                       f"{r['x_realtime_2_idle_cores_from_cpu']:.1f} x")
             out.append(f"| replay of a {replay['drive_minutes']:g}-minute drive, {replay['model']} model, "
                        f"{what}, stride 1 ({replay['started']}, load {r['load_average'][0]}) "
-                       f"| {r['x_realtime']:.1f} x real time{vs} ({r['rows_per_s']:.0f} rows/s; per row [ms]: {where}) "
-                       f"| >= {target:g} x | {met} |")
+                       f"| {r['x_realtime']:.1f} x real time{vs} ({r['rows_per_s']:.0f} rows/s{cpu}; per row [ms]: "
+                       f"{where}) | >= {target:g} x | {met} |")
             workers = f", inference workers {rss['workers_peak_mib']:.0f} MiB at most" if rss.get("workers_peak_mib") \
                 else ""
             out.append(f"| RSS over that replay: start {rss['start_mib']:.0f} MiB, half-way {rss['half_mib']:.0f}, "
