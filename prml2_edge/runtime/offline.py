@@ -140,8 +140,12 @@ def run_windows(session, output_names, input_name, output_rows: int, array: np.n
     return status, mean, var, error
 
 
-def _worker_main(path: str, threads: int, spinning: bool, providers: list, batch: int, tasks, results) -> None:
-    """An inference process: the same session options as the runtime's model, windows in, outputs out."""
+def _worker_main(path: str, threads: int, spinning: bool, providers: list, batch: int, tasks, results,
+                 parent: int) -> None:
+    """An inference process: the same session options as the runtime's model, windows in, outputs out.
+    It ends with ``None`` from the parent, or once the parent is gone (killed: nobody would read its results)."""
+    import queue
+
     import onnxruntime as ort
 
     from prml2_edge.runtime.inference import session_options
@@ -158,7 +162,12 @@ def _worker_main(path: str, threads: int, spinning: bool, providers: list, batch
         return
     names, inp, rows_out, L = list(meta.output_names), meta.input_name, meta.rows, int(meta.L)
     while True:
-        task = tasks.get()
+        try:
+            task = tasks.get(timeout=1.0)
+        except queue.Empty:
+            if os.getppid() != parent:
+                return
+            continue
         if task is None:
             return
         task_id, first_row, piece, rows = task
@@ -203,7 +212,7 @@ class _Processes:
         choice = getattr(model, "provider_choice", None)
         providers = list(getattr(choice, "providers", None) or ["CPUExecutionProvider"])
         args = (str(model.path), int(model.session.get_session_options().intra_op_num_threads),
-                bool(getattr(model, "spinning", False)), providers, batch, self.tasks, self.results)
+                bool(getattr(model, "spinning", False)), providers, batch, self.tasks, self.results, os.getpid())
         self.procs = [ctx.Process(target=_worker_main, args=args, name=f"prml2-infer-{k}", daemon=True)
                       for k in range(n)]
         for p in self.procs:
