@@ -104,12 +104,33 @@ def throughput_markdown(replay: dict | None, training: dict | None) -> list[str]
         for r in replay["runs"]:
             rss = r["rss"]
             where = ", ".join(f"{k} {v:.2f}" for k, v in r["per_row_ms"].items())
+            mode = r.get("mode", "streaming")
+            if mode == "streaming":
+                what, target = f"{r['threads']} thread(s)", tg.REPLAY_X_REALTIME
+                met = _yes(r["x_realtime"] >= target)
+            else:
+                what = f"offline ({r['precision']}, {r['workers']} inference worker(s))"
+                target = tg.OFFLINE_X_REALTIME if r["precision"] == "fp32" else tg.OFFLINE_REDUCED_X_REALTIME
+                met = _yes(r["x_realtime"] >= target)
+                if "z_rmse_change" in r:
+                    worst = max(abs(v) for v in r["z_rmse_change"].values())
+                    where += f"; z RMSE change vs fp32 at most {100 * worst:.2f} %"
+                    met = _yes(r["x_realtime"] >= target and worst <= tg.OFFLINE_REDUCED_RMSE_CHANGE)
+            vs = ""
+            if "x_vs_streaming" in r and mode != "streaming":
+                vs = f", {r['x_vs_streaming']:.2f} x the streaming replay"
+            cpu = ""
+            if "cpu_ms_per_driven_s" in r:
+                cpu = (f"; CPU {r['cpu_ms_per_driven_s']:.1f} ms per driven s, so on 2 idle cores "
+                       f"{r['x_realtime_2_idle_cores_from_cpu']:.1f} x")
             out.append(f"| replay of a {replay['drive_minutes']:g}-minute drive, {replay['model']} model, "
-                       f"{r['threads']} thread(s), stride 1 ({replay['started']}, load {r['load_average'][0]}) "
-                       f"| {r['x_realtime']:.1f} x real time ({r['rows_per_s']:.0f} rows/s; per row [ms]: {where}) "
-                       f"| >= {tg.REPLAY_X_REALTIME:g} x | {_yes(r['x_realtime'] >= tg.REPLAY_X_REALTIME)} |")
+                       f"{what}, stride 1 ({replay['started']}, load {r['load_average'][0]}) "
+                       f"| {r['x_realtime']:.1f} x real time{vs} ({r['rows_per_s']:.0f} rows/s{cpu}; per row [ms]: "
+                       f"{where}) | >= {target:g} x | {met} |")
+            workers = f", inference workers {rss['workers_peak_mib']:.0f} MiB at most" if rss.get("workers_peak_mib") \
+                else ""
             out.append(f"| RSS over that replay: start {rss['start_mib']:.0f} MiB, half-way {rss['half_mib']:.0f}, "
-                       f"end {rss['end_mib']:.0f}, peak {rss['peak_mib']:.0f} | growth in the 2nd half "
+                       f"end {rss['end_mib']:.0f}, peak {rss['peak_mib']:.0f}{workers} | growth in the 2nd half "
                        f"{rss['second_half_growth_mib']:.1f} MiB ({100 * rss['second_half_growth_fraction']:.1f} %) "
                        f"| <= {100 * tg.RSS_GROWTH_FRACTION:g} % (flat) | {_yes(rss['flat'])} |")
     if training:

@@ -10,6 +10,9 @@ EDGE_SPEEDUP_VS_TORCH = 1.5  # runtime vs torch-eager pipeline, same run (edge m
 PAPER_GEMM_FRACTION = 0.60  # paper-size fp32 model rate / measured NumPy GEMM rate
 OVERHEAD_P99_MS = 1.0  # end-to-end minus model, p99
 REPLAY_X_REALTIME = 20.0  # 10-minute drive, edge model
+OFFLINE_X_REALTIME = 25.0  # issue 17: offline replay of a recorded log, edge model, fp32
+OFFLINE_REDUCED_X_REALTIME = 100.0  # issue 17: offline replay with a reduced-precision graph ...
+OFFLINE_REDUCED_RMSE_CHANGE = 0.01  # ... whose z RMSE changes by at most 1 % (every state)
 RSS_GROWTH_FRACTION = 0.05  # "flat": RSS growth over the second half of the replay / RSS at half time
 
 

@@ -35,12 +35,13 @@ def kinematic_weights() -> np.ndarray:
 def make_kinematic_model(path: str | Path, weights: np.ndarray | None = None, std=KINEMATIC_STD,
                          bias: np.ndarray | None = None, var_scale_on_input: float = 0.0,
                          meta_overrides: dict | None = None, L: int = schema.WINDOW_LEN,
-                         H: int = schema.ENCODER_LEN) -> Path:
+                         H: int = schema.ENCODER_LEN, batch: int | str = 1) -> Path:
     """Write the closed-form model to ``path`` and return it.
 
     ``var_scale_on_input`` multiplies the variance by ``(1 + s * o[:, :, 0])`` (s < 0 lets a test
     drive the variance non-positive on purpose); ``meta_overrides`` replaces metadata fields
-    (to build mismatching models); ``bias`` (5,) is added to the mean (NaN makes a broken model).
+    (to build mismatching models); ``bias`` (5,) is added to the mean (NaN makes a broken model); ``batch`` is the
+    graph's batch dimension (a name such as ``"batch"`` leaves it free).
     """
     path = Path(path)
     w = kinematic_weights() if weights is None else np.asarray(weights, dtype=np.float32)
@@ -73,9 +74,9 @@ def make_kinematic_model(path: str | Path, weights: np.ndarray | None = None, st
     ]
     graph = helper.make_graph(
         nodes, "prml2_kinematic",
-        [helper.make_tensor_value_info(INPUT_NAME, TensorProto.FLOAT, [1, L, schema.NUM_SIGNALS])],
-        [helper.make_tensor_value_info("z_mean", TensorProto.FLOAT, [1, L - H, schema.NUM_STATES]),
-         helper.make_tensor_value_info("z_var", TensorProto.FLOAT, [1, L - H, schema.NUM_STATES])],
+        [helper.make_tensor_value_info(INPUT_NAME, TensorProto.FLOAT, [batch, L, schema.NUM_SIGNALS])],
+        [helper.make_tensor_value_info("z_mean", TensorProto.FLOAT, [batch, L - H, schema.NUM_STATES]),
+         helper.make_tensor_value_info("z_var", TensorProto.FLOAT, [batch, L - H, schema.NUM_STATES])],
         inits,
     )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], producer_name="prml2-tests")

@@ -13,7 +13,7 @@ LAYERS = [
     {"schema", "errors", "resources", "progress", "tum", "dead_reckoning", "model_meta", "config"},
     {"can", "ekf", "guard", "viz", "data"},
     {"runtime", "bench"},
-    {"service", "evaluation", "testing"},
+    {"service", "evaluation", "testing", "fleet"},
     {"training"},
     {"cli"},
 ]

@@ -45,6 +45,33 @@ def simulate_log(seconds: float, out_path: str | Path, seed: int = 0, family: st
     return Path(info["out"]), pose, float(info["duration_s"])
 
 
+def simulate_fleet_log(seconds: float, out_path: str | Path, seed: int = 0, gnss_head_s: float = 10.0,
+                       gnss_tail_s: float = 2.0, family: str = "mixed", mu: float = 1.0,
+                       signal_map: str = DEFAULT_MAP) -> tuple[Path, float]:
+    """A drive as a fleet car logs it: GNSS for the first ``gnss_head_s``, an outage, GNSS again for the last
+    ``gnss_tail_s`` (the fix after the outage measures the drift). Returns ``(log path, duration [s])``."""
+    from prml2_edge.can.encode import encode_drive_to_log
+    from prml2_edge.can.signal_map import load_map_and_dbc, shipped_map_path
+    from prml2_edge.data.simulate import simulate_drive
+
+    out_path = Path(out_path)
+    drive = simulate_drive(seconds / 60.0, mu, seed, family)
+    with tempfile.TemporaryDirectory(prefix="prml2-fleet-") as tmp:
+        full = Path(tmp) / "full.log"
+        info = encode_drive_to_log(drive, full, signal_map_path=shipped_map_path(signal_map), gnss_seconds=seconds)
+        smap, db, _ = load_map_and_dbc(shipped_map_path(signal_map))
+        gnss_id = db.get_message_by_name(smap.gnss.message).frame_id
+        duration = float(info["duration_s"])
+        with can.LogReader(str(full)) as reader, can.Logger(str(out_path)) as writer:
+            t0 = None
+            for msg in reader:
+                t0 = msg.timestamp if t0 is None else t0
+                t = msg.timestamp - t0
+                if msg.arbitration_id != gnss_id or t < gnss_head_s or t >= duration - gnss_tail_s:
+                    writer.on_message_received(msg)
+    return out_path, duration
+
+
 def read_frames(log_path: str | Path) -> list[can.Message]:
     """Every frame of a CAN log, in file order."""
     with can.LogReader(str(log_path)) as reader:

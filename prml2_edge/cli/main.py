@@ -21,6 +21,7 @@ COMMANDS: dict[str, str] = {
     "export": "export",
     "evaluate": "evaluate",
     "replay": "replay",
+    "fleet": "fleet",
     "run": "run_live",
     "bench": "bench",
     "doctor": "doctor",

@@ -15,6 +15,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="CAN log: .log (candump), .asc, .blf, .trc, .csv, .mf4 (ASAM MDF4, the mf4 extra)")
     parser.add_argument("--realtime", action="store_true", help="keep the log's original timing")
     parser.add_argument("--speed", type=float, default=1.0, help="playback speed factor with --realtime (default 1)")
+    parser.add_argument("--batch", action="store_true",
+                        help="offline schedule: read and assemble the log directly, run every model window ahead of "
+                             "the filter in worker processes; same poses as the streaming replay (not with --realtime)")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="with --batch: inference worker processes (default: this machine's CPUs; 1: no processes)")
+    parser.add_argument("--batch-size", type=int, default=1,
+                        help="with --batch: windows per ONNX Runtime call (default 1, bitwise the streaming poses; > 1 "
+                             "needs a graph with a free batch dimension)")
     parser.add_argument("--can-out", metavar="PATH",
                         help="write PRML2_POSE/PRML2_DYNAMICS/PRML2_POSE_STD frames to this CAN log")
     parser.add_argument("--truth", metavar="CSV",
@@ -43,6 +51,10 @@ def run(args: argparse.Namespace) -> int:
     cfg = config_from_args(args)
     if args.truth_tum and not args.truth:
         raise ConfigError("--truth-tum needs --truth DRIVE.csv (the drive with the ground truth)")
+    if args.batch and args.realtime:
+        raise ConfigError("--batch replays as fast as it can; drop --realtime (or --batch)")
+    if not args.batch and (args.workers is not None or args.batch_size != 1):
+        raise ConfigError("--workers and --batch-size go with --batch")
     # A broken or cut-off log is still replayed up to the problem: every pose it yields is written,
     # then the problem is reported (one line, non-zero exit).
     n_frames, t_first, t_last, problem = scan_log(args.log)
@@ -74,19 +86,34 @@ def run(args: argparse.Namespace) -> int:
         pipeline.add_gnss_source(feed)
         print(f"GNSS: {len(feed.fixes)} fixes from {args.gnss}, merged by time")
     print(f"replaying {args.log}: {n_frames} frames, {t_last - t_first:.1f} s"
-          f"{' in real time' if args.realtime else ''}; {pipeline.model.describe()}"
+          f"{' in real time' if args.realtime else ''}{' (offline schedule)' if args.batch else ''}; "
+          f"{pipeline.model.describe()}"
           + (" (the log is damaged: replaying the frames before the damage)" if problem else ""))
     try:
-        with LogReplay(args.log, realtime=args.realtime, speed=args.speed) as source, \
-                Progress(n_frames, desc="replay", unit="frames") as bar:
-            run_source(pipeline, source, progress=bar)
-            error = source.error
+        if args.batch:
+            from prml2_edge.runtime.offline import run_offline
+
+            with Progress(n_frames, desc="replay", unit="frames") as bar:
+                error = run_offline(pipeline, args.log, batch=args.batch_size, workers=args.workers,
+                                    progress=bar).problem
+        else:
+            with LogReplay(args.log, realtime=args.realtime, speed=args.speed) as source, \
+                    Progress(n_frames, desc="replay", unit="frames") as bar:
+                run_source(pipeline, source, progress=bar)
+                error = source.error
     finally:
         pipeline.close()
     summary = pipeline.summary()
     if feed is not None:
         summary["gnss_input"] = feed.summary()
     extra_lines = []
+    if args.batch:
+        off = summary["offline"] = pipeline.offline
+        t = off["timing_s"]
+        extra_lines.append(f"offline: {off['windows']} windows, {off['workers']} worker(s), {off['batch']} per call; "
+                           f"decode+assemble {t['decode_assemble']:.1f} s, filter {t['filter']:.1f} s, inference "
+                           f"{t['inference_workers']:.1f} s (summed over workers), filter waited "
+                           f"{t['filter_waited_for_inference']:.1f} s")
     if truth is not None:
         from prml2_edge.runtime.demo import compare_with_truth, truth_lines
 

@@ -87,6 +87,32 @@ class Estimator:
             self._output_ok = self.window.invalid_fraction <= self.max_invalid_fraction
         return t1 - t0, time.perf_counter_ns() - t1
 
+    @staticmethod
+    def schedule(discontinuity, window_len: int, stride: int, state: list[int] | None = None,
+                 offset: int = 0) -> np.ndarray:
+        """Row indices at which :meth:`step` runs the model, for rows with these ``discontinuity`` flags.
+
+        The inference rule of :meth:`step` (the window is full, and ``stride`` rows have passed since the
+        last inference, counted from the last discontinuity) depends on nothing else, so an offline run can
+        compute every window before its rows are filtered (:mod:`prml2_edge.runtime.offline`). The window of
+        row ``i`` is rows ``i - window_len + 1 .. i``, all after the last discontinuity. For a stream in
+        pieces pass the same ``state`` list (rows since the last discontinuity, that count at the last
+        inference) each time and the index of the piece's first row as ``offset``.
+        """
+        if state is None:
+            state = [0, -1]
+        count, inf_count = state
+        out = []
+        for i, disc in enumerate(np.asarray(discontinuity, dtype=bool).tolist()):
+            if disc:
+                count, inf_count = 0, -1
+            count += 1
+            if count >= window_len and (inf_count < 0 or count - inf_count >= stride):
+                out.append(offset + i)
+                inf_count = count
+        state[:] = [count, inf_count]
+        return np.asarray(out, dtype=np.int64)
+
     def step(self, values: np.ndarray, all_valid: bool, discontinuity: bool = False) -> Estimate:
         """One row ``values`` (9,) into the window; the z to use at this step, if any."""
         if discontinuity:

@@ -45,6 +45,11 @@ class LatencyRecorder:
             del samples[:half]
             self.dropped += half
 
+    def clear(self, stage: str) -> None:
+        """Forget ``stage``'s samples (the offline path, whose model stage does not run per row)."""
+        del self._ns[stage][:]
+        self._total[stage] = 0
+
     def samples_ms(self, stage: str) -> np.ndarray:
         """The kept samples of ``stage`` [ms], (n,) float64, oldest first."""
         return np.frombuffer(self._ns[stage], dtype=np.int64).astype(np.float64) / 1e6 if self._ns[stage] else \
