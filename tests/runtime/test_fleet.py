@@ -78,7 +78,7 @@ def test_fleet_without_the_extra_says_what_to_install(monkeypatch, tmp_path, cap
     monkeypatch.setitem(sys.modules, "distributed", None)
     assert main(["fleet", "x.log", "--out", str(tmp_path)]) == 1
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "prml2-edge[fleet]" in err and "pip install" in err
+    assert len(err.splitlines()) == 1 and "'.[fleet]'" in err and "pip install" in err
 
 
 def test_fleet_refuses_a_bad_model_before_starting_a_cluster(logs, tmp_path, capsys):
