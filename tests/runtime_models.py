@@ -95,3 +95,16 @@ def make_kinematic_model(path: str | Path, weights: np.ndarray | None = None, st
     path.parent.mkdir(parents=True, exist_ok=True)
     onnx.save(model, str(path))
     return path
+
+
+class ListSink:
+    """A pipeline sink that keeps every StepOutput (tests)."""
+
+    def __init__(self) -> None:
+        self.outs = []
+
+    def step(self, out) -> None:
+        self.outs.append(out)
+
+    def close(self) -> None:
+        pass

@@ -223,7 +223,7 @@ class Dataset:
             role, vehicle, own = entry.get("role", "dry"), entry.get("vehicle", "reference"), entry.get("split")
             if (name == "heldout") != (vehicle in heldout):
                 continue
-            if name == "snow" or (name == "heldout" and role == "snow"):
+            if role == "snow" or name == "snow":  # snow drives are split "snow" only, whole
                 if role == "snow" and name == "snow":
                     out.append((drive, 0, len(drive)))
                 continue

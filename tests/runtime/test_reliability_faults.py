@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import can
 import numpy as np
 import pytest
-from runtime_models import make_kinematic_model
+from runtime_models import ListSink, make_kinematic_model
 
 from prml2_edge import schema
 from prml2_edge.can.encode import encode_drive_to_log
@@ -33,17 +33,6 @@ GNSS_S = 4.0
 T0, T1 = 9.0, 11.0  # default fault interval [s]
 YAW, SW, WFL, WFR = 2, 1, 5, 6  # canonical signal indices
 FROZEN = (14.0, 17.0)  # seed 12 turns here: the steering wheel moves > 0.5 rad within 1.5 s
-
-
-class ListSink:
-    def __init__(self) -> None:
-        self.outs = []
-
-    def step(self, out) -> None:
-        self.outs.append(out)
-
-    def close(self) -> None:
-        pass
 
 
 @dataclass

@@ -14,7 +14,7 @@ from __future__ import annotations
 import can
 import numpy as np
 import pytest
-from runtime_models import make_kinematic_model
+from runtime_models import ListSink, make_kinematic_model
 
 from prml2_edge.can.encode import encode_drive_to_log
 from prml2_edge.can.signal_map import load_dbc
@@ -39,17 +39,6 @@ FAULTS = [
     Fault("time_shift", 18.0, 20.0, value=-0.5),  # logger clock jumps back, then forward
     Fault("bus_silent", 24.0, 30.5),  # longer than the assembler's max gap: grid re-anchored, window restarted
 ]
-
-
-class ListSink:
-    def __init__(self) -> None:
-        self.outs = []
-
-    def step(self, out) -> None:
-        self.outs.append(out)
-
-    def close(self) -> None:
-        pass
 
 
 @pytest.fixture(scope="module")
