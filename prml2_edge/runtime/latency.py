@@ -1,6 +1,6 @@
 """Per-stage latency: ``time.perf_counter_ns`` samples -> p50/p95/p99/max and deadline misses.
 
-Stages: ``decode`` and ``assemble`` per frame; ``infer`` (onnxruntime) and ``guard`` per
+Stages: ``decode`` and ``assemble`` per frame; ``plausibility`` (the cross-checks) per 50 Hz row; ``infer`` (onnxruntime) and ``guard`` per
 inference; ``filter`` (EKF step and GNSS fusion) and ``sinks`` per 50 Hz step;
 ``end_to_end`` per 50 Hz step, from the moment the frame that completed the row was received
 to the moment every sink had the result. The 50 Hz deadline is 20 ms.
@@ -14,7 +14,7 @@ import numpy as np
 
 from prml2_edge import schema
 
-STAGES = ("decode", "assemble", "infer", "guard", "filter", "sinks", "end_to_end")
+STAGES = ("decode", "assemble", "plausibility", "infer", "guard", "filter", "sinks", "end_to_end")
 DEADLINE_MS = 1000.0 * schema.DT_S  # 20 ms at 50 Hz
 PAPER_INFER_MS = (25.0, 32.0)  # paper Sec. V: PRML2 inference on an NVIDIA Orin
 PAPER_NOTE = "paper: 25-32 ms inference on an NVIDIA Orin (d=512, 8 heads, 2 layers), ~30 Hz"

@@ -131,6 +131,8 @@ class StepOutput:
     standstill: bool = False
     signals: np.ndarray | None = None  # (9,) the row's onboard signals [SI], canonical order (as the model saw them)
     gnss: GnssFix | None = None  # the GNSS fix that arrived in this row, valid or not (None: none arrived)
+    substituted: np.ndarray | None = None  # (9,) bool: values the plausibility checks replaced (None: none)
+    reasons: dict | None = None  # why the pose is degraded / GNSS not used: {signal or "gnss": reason}
     # time spent in the model, the guard and the filter at this step [ns] (the pipeline records them)
     infer_ns: int = 0
     guard_ns: int = 0
@@ -160,6 +162,10 @@ class StepOutput:
                 rec[name] = num(value)
             rec["standstill"] = self.standstill
         rec["valid"] = {n: bool(v) for n, v in zip(schema.SIGNAL_NAMES, self.valid, strict=True)}
+        if self.substituted is not None and self.substituted.any():
+            rec["substituted"] = [n for n, v in zip(schema.SIGNAL_NAMES, self.substituted, strict=True) if v]
+        if self.reasons:
+            rec["reasons"] = dict(self.reasons)
         return rec
 
 
@@ -260,15 +266,18 @@ class StreamingLocalizer:
         return self.filter.calibration()
 
     def step(self, values: np.ndarray, valid: np.ndarray, t_s: float, gnss: GnssFix | None = None,
-             discontinuity: bool = False, bus_silent: bool = False) -> StepOutput:
+             discontinuity: bool = False, bus_silent: bool = False, substituted: np.ndarray | None = None
+             ) -> StepOutput:
         """Consume one 50 Hz row: ``values`` (9,) SI canonical order, ``valid`` (9,) bool, at ``t_s`` [s].
 
-        ``bus_silent`` (the assembler's flag) is passed through to the output.
+        ``bus_silent`` (the assembler's flag) is passed through to the output. ``substituted`` (9,) bool marks
+        values that :mod:`~prml2_edge.runtime.plausibility` replaced (invalid for the filter, fine for the model).
         """
         self.k += 1
         valid = np.asarray(valid, dtype=bool)
         all_valid = bool(np.all(valid))
-        est = self.estimator.step(values, all_valid, discontinuity)
+        model_ok = all_valid or (substituted is not None and bool(np.all(valid | substituted)))
+        est = self.estimator.step(values, model_ok, discontinuity)
         fix = gnss if (gnss is not None and gnss.valid and self.config.fuse_gnss) else None
         t_filter = time.perf_counter_ns()
         res = self.filter.step(values, valid, t_s, est, fix)

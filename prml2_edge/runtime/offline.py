@@ -415,7 +415,7 @@ def run_offline(pipeline, path: str | Path, batch: int = 1, workers: int | None 
                 status, new_rows = assembler.step(frame, 0)
                 stats.add_frame(status, frame)
                 if new_rows:
-                    rows += new_rows
+                    rows += [pipeline.check(r) for r in new_rows]
             n_frames += len(frames)
             add_rows(rows)
             t1 = time.perf_counter()
@@ -426,7 +426,7 @@ def run_offline(pipeline, path: str | Path, batch: int = 1, workers: int | None 
                 filter_block(pending.pop(0))
             t_filter += time.perf_counter() - t1
         t0 = time.perf_counter()
-        add_rows(assembler.flush())
+        add_rows([pipeline.check(r) for r in assembler.flush()])
         t1 = time.perf_counter()
         while pending:
             filter_block(pending.pop(0))

@@ -30,6 +30,7 @@ from prml2_edge.runtime.inference import OnnxModel, default_model_path
 from prml2_edge.runtime.initial_pose import InitialPose
 from prml2_edge.runtime.latency import LatencyRecorder
 from prml2_edge.runtime.localizer import LocalizerConfig, StepOutput, StreamingLocalizer
+from prml2_edge.runtime.plausibility import Plausibility, PlausibilityConfig
 from prml2_edge.runtime.rows import AssembledRow
 from prml2_edge.runtime.stats import FrameStats
 from prml2_edge.runtime.status import PoseStatus
@@ -106,8 +107,10 @@ class Pipeline:
 
     def __init__(self, signal_map: SignalMap, decoder: FrameDecoder, assembler: Assembler,
                  localizer: StreamingLocalizer, sinks: Sequence = (), stats: FrameStats | None = None,
-                 latency: LatencyRecorder | None = None, dbc_path: Path | None = None) -> None:
+                 latency: LatencyRecorder | None = None, dbc_path: Path | None = None,
+                 plausibility: Plausibility | None = None) -> None:
         self.signal_map = signal_map
+        self.plausibility = plausibility
         self.decoder = decoder
         self.assembler = assembler
         self.localizer = localizer
@@ -143,11 +146,13 @@ class Pipeline:
               initial_pose: InitialPose | None = None, sinks: Sequence = (),
               localizer_config: LocalizerConfig | None = None, trt_cache_dir: str = "~/.cache/prml2/trt",
               trt_fp16: bool = False, calibration: bool = True, calibration_file: str | Path | None = None,
-              external_gnss: bool = False) -> Pipeline:
+              external_gnss: bool = False, plausibility: PlausibilityConfig | None = None) -> Pipeline:
         """Load and cross-check map, DBC and model; refuse mismatches at start-up with what differs.
 
         ``initial_pose`` None means: take it from the first GNSS fix on the bus, which needs a map
         with a ``[gnss]`` table, or ``external_gnss`` (fixes from ``--gnss``, see :meth:`add_gnss_source`).
+        ``plausibility`` configures the cross-checks of the signals (:mod:`~prml2_edge.runtime.plausibility`;
+        default on, ``PlausibilityConfig(enabled=False)`` turns them off).
         """
         signal_map, db, dbc_path = load_map_and_dbc(resolve_map(map), dbc)
         if initial_pose is None and signal_map.gnss is None and not external_gnss:
@@ -164,7 +169,8 @@ class Pipeline:
         decoder = FrameDecoder(signal_map, db)
         assembler = Assembler.for_map(signal_map, stale_periods=stale_periods)
         localizer = StreamingLocalizer(model, cfg, initial_pose=initial_pose)
-        pipeline = cls(signal_map, decoder, assembler, localizer, sinks, stats, latency, dbc_path)
+        checks = Plausibility([s.rate_hz for s in signal_map.signals], plausibility, assembler.substituted)
+        pipeline = cls(signal_map, decoder, assembler, localizer, sinks, stats, latency, dbc_path, checks)
         if calibration_file is not None and cfg.calibration:
             pipeline.use_calibration_file(calibration_file)
         return pipeline
@@ -206,8 +212,21 @@ class Pipeline:
         self._interval.frames += 1
         self._last_frame_wall = time.monotonic()
         if rows:
-            outs += [self._row(row) for row in rows]
+            outs += [self._row(self.check(row)) for row in rows]
         return outs
+
+    def check(self, row: AssembledRow) -> AssembledRow:
+        """The plausibility stage (between the assembler and :meth:`_row`): flagged and stale signals out,
+        the others' prediction in (:mod:`~prml2_edge.runtime.plausibility`)."""
+        if self.plausibility is None:
+            return row
+        t0 = time.perf_counter_ns()
+        row = self.plausibility.check(row)
+        self.latency.add("plausibility", time.perf_counter_ns() - t0)
+        for i in row.newly_flagged:
+            log.warning("%s taken out at t=%.2f s: %s", schema.SIGNAL_NAMES[i], row.t_s,
+                        self.plausibility.checks[i].reason)
+        return row
 
     def add_gnss_source(self, source) -> None:
         """Merge fixes from ``source`` (``due(t_s)`` returns those up to frame time ``t_s``) into the stream."""
@@ -221,12 +240,12 @@ class Pipeline:
                     self.stats.gnss_fixes += 1
                 else:
                     self.stats.gnss_invalid += 1
-                outs += [self._row(row) for row in self.assembler.add_gnss(fix, recv_ns)]
+                outs += [self._row(self.check(row)) for row in self.assembler.add_gnss(fix, recv_ns)]
         return outs
 
     def finish(self) -> list[StepOutput]:
         """End of stream: emit the last row(s) still held by the assembler."""
-        return [self._row(row) for row in self.assembler.flush()]
+        return [self._row(self.check(row)) for row in self.assembler.flush()]
 
     def missing_signals(self, t_s: float | None = None) -> list[str]:
         """One line per mapped signal that has had no value by ``t_s`` (default: the last row), naming its
@@ -270,7 +289,11 @@ class Pipeline:
         self.invalid_rows += ~row.valid
         if not self._warned_missing.all():
             self._warn_missing(row.t_s)
-        out = self.localizer.step(row.values, row.valid, row.t_s, row.gnss, row.discontinuity, row.bus_silent)
+        out = self.localizer.step(row.values, row.valid, row.t_s, row.gnss, row.discontinuity, row.bus_silent,
+                                  row.substituted)
+        out.substituted = row.substituted
+        if out.degraded or out.reasons:
+            out.reasons = {**(out.reasons or {}), **self._reasons(row)}
         if out.inferred:
             self.latency.add("infer", out.infer_ns)
             self.latency.add("guard", out.guard_ns)
@@ -289,6 +312,20 @@ class Pipeline:
         self._interval.rows += 1
         if self.calibration_file is not None and self.calibration_file.due(out.t_s):
             self._save_calibration(out.t_s)
+        return out
+
+    def _reasons(self, row: AssembledRow) -> dict[str, str]:
+        """Why each invalid signal of ``row`` is out, one line each."""
+        checks = self.plausibility.checks if self.plausibility is not None else None
+        out = {}
+        for i in np.flatnonzero(~row.valid):
+            name = schema.SIGNAL_NAMES[i]
+            why = checks[i].reason if checks is not None and checks[i].flagged else "stale (no valid frame)"
+            if self.assembler.frozen[i]:
+                why = "frozen (stuck-sensor check)"
+            if row.substituted is not None and row.substituted[i]:
+                why += "; the others' prediction stands in"
+            out[name] = why
         return out
 
     def model_never_ran(self) -> str | None:
@@ -331,6 +368,11 @@ class Pipeline:
         if out is not None:
             invalid = [schema.SIGNALS[i].symbol for i in np.flatnonzero(~out.valid)]
             parts.append("invalid: " + (",".join(invalid) if invalid else "none"))
+            if self.plausibility is not None:
+                flagged = self.plausibility.reasons()
+                if flagged:
+                    parts.append("OUT " + "; ".join(f"{schema.SIGNAL_BY_NAME[n].symbol}: {r}"
+                                                    for n, r in flagged.items()))
             max_age_s = self.assembler.max_signal_age_s()
             if max_age_s is not None:
                 parts.append(f"max age {1000.0 * max_age_s:.0f} ms")
@@ -378,6 +420,7 @@ class Pipeline:
             "frames": self.stats.as_dict(),
             "rows": self.rows, "grid_resyncs": assembler["grid_resyncs"], "bus_silent_rows": self.bus_silent_rows,
             "signals_missing": self.missing_signals(),
+            "plausibility": self.plausibility.summary() if self.plausibility is not None else {"enabled": False},
             "signal_faults": {"frozen_now": assembler["frozen_now"],
                               "frozen_episodes": {n: c for n, c in zip(schema.SIGNAL_NAMES, self.stats.signal_frozen,
                                                                         strict=True) if c}},

@@ -87,6 +87,16 @@ class AssembledRow:
     trigger_ns: int = 0
     bus_silent: bool = False  # no frame at all for more than bus_silent_s before this row
     newly_frozen: tuple[int, ...] = ()  # signals a stuck check froze at this row
+    # runtime.plausibility: values replaced by what the other signals predict (flagged or stale signals)
+    substituted: np.ndarray | None = None  # (9,) bool, None: none replaced
+    newly_flagged: tuple[int, ...] = ()  # signals the cross-checks flagged at this row
+
+    @property
+    def model_ok(self) -> bool:
+        """Every signal valid or replaced by a substitute: the model can run on this row."""
+        if self.substituted is None:
+            return bool(self.valid.all())
+        return bool((self.valid | self.substituted).all())
 
     @property
     def all_valid(self) -> bool:

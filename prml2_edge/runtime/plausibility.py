@@ -1,0 +1,546 @@
+"""Online plausibility: the nine onboard signals checked against each other while driving.
+
+A car's CAN bus carries the same motion several times over: four wheel speeds and the
+speedometer describe the speed; the yaw rate, the difference of the left and right wheels of
+each axle, the lateral acceleration over the speed (``a_y / v``) and the steering wheel angle
+through the single-track model (``delta_sw = ratio * (L / v + K v) * omega``) describe the
+rotation; the brake pressure is a deceleration the wheels must show. :class:`Plausibility` runs
+between the assembler and the localiser and, every 50 Hz row:
+
+1. **speed** — each wheel, corrected to the car's centre for the yaw rate (``-/+ half track *
+   omega``) and scaled by its learned rolling-radius ratio, against the median of the other
+   wheels; the speedometer against its learned factor times the wheels' speed (low-passed like
+   the instrument);
+2. **rotation** — up to five estimates of ``omega`` (gyro, rear pair, front pair, ``a_y / v``,
+   steering); the yaw rate, ``a_y`` and the steering are each checked, in their own unit, against
+   the median of the *other* estimates (leave-one-out: one faulty signal cannot hide itself);
+3. **brake** — the wheels' deceleration against the one the brake pressure predicts;
+4. **stuck** — every signal whose value has not changed for :attr:`PlausibilityConfig.stuck_hold_s`
+   (at least 5 of its periods) while what the others predict for it moved by more than twice its
+   tolerance.
+
+A residual is smoothed (EMA, :attr:`~PlausibilityConfig.smooth_s`); above its tolerance for
+:attr:`~PlausibilityConfig.confirm_s` the signal is *flagged*, with a reason (offset, scale,
+dropout to zero, stuck); below half the tolerance for :attr:`~PlausibilityConfig.clear_s` it is
+cleared. Tolerances are an absolute part, a part relative to the value and (yaw rate, a_y,
+steering) the signal's resolution measured online. The relations' unknowns (each axle's effective
+track and left/right radius difference, the a_y offset, the steering gain and understeer, the
+speedometer factor, every wheel's radius ratio, the brake gain) are learned online by recursive
+least squares with forgetting (:attr:`~PlausibilityConfig.learn_tau_s`), only from rows in which
+the signals involved are unflagged; a relation takes part in the checks once it has seen enough
+driving (:attr:`~PlausibilityConfig.warmup_s`, turns for the steering).
+
+A flagged signal, and a stale one (its message stopped), is taken out: it is invalid for the
+filter (no cue, no standstill check from it) and its value in the row is replaced by what the
+others predict for it (wheel: median of the others, radius ratio and lever arm; speedometer:
+factor times the wheels; yaw rate: the median of the other rotation estimates; a_y: ``v omega``;
+steering: the single-track model; brake pressure: from the wheels' deceleration), so the model
+keeps its full window. ``AssembledRow.substituted`` marks those values; the pose is ``DEGRADED``
+and the status line names the signal and the reason. Checks run above
+:attr:`~PlausibilityConfig.min_speed_mps`; below it (parking, ABS sensors blind) flags hold.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from prml2_edge import schema
+from prml2_edge.runtime.rows import AssembledRow
+
+_SIG = {s.name: s.index for s in schema.SIGNALS}
+VS, SW, YAW, AY, BP = (_SIG[n] for n in ("speedometer_mps", "steering_wheel_angle_rad", "yaw_rate_radps",
+                                          "lat_accel_mps2", "brake_pressure_bar"))
+FL, FR, RL, RR = schema.WHEEL_SPEED_INDICES
+WHEELS = (FL, FR, RL, RR)
+N = schema.NUM_SIGNALS
+_DEG = schema.DEG_TO_RAD
+
+
+@dataclass(frozen=True)
+class PlausibilityConfig:
+    """Tunables of :class:`Plausibility` (SI units). Chosen on the simulated fleet's training cars
+    (``benchmarks/reliability.py`` reports the held-out car); the README explains each."""
+
+    enabled: bool = True
+    min_speed_mps: float = 5.0  # cross-checks run above this speed
+    smooth_s: float = 0.25  # EMA time constant of the speed and brake residuals
+    smooth_rot_s: float = 0.4  # and of the rotation residuals (yaw rate, a_y, steering: transients lead and lag)
+    confirm_s: float = 0.15  # smoothed residual above tolerance this long: flagged
+    clear_s: float = 1.0  # below half the tolerance this long: cleared
+    warmup_s: float = 10.0  # driving time before a learned relation takes part in the checks
+    learn_tau_s: float = 120.0  # forgetting time of the learned relations
+    half_track_m: float = 0.78  # lever arm of the wheels (the effective track is learned per axle)
+    steering_ratio: float = 15.0  # only for the front wheels' steer correction
+    wheel_tol_mps: float = 0.3
+    wheel_tol_rel: float = 0.04
+    wheel_slip_per_mps2: float = 0.015  # driven and braked wheels slip: relative tolerance per m/s^2 of |a_x|
+    speedo_tol_mps: float = 0.6
+    speedo_tol_rel: float = 0.05
+    speedo_lag_s: float = 0.25  # the instrument's low-pass
+    yaw_tol_radps: float = 0.6 * _DEG
+    yaw_tol_rel: float = 0.05
+    ay_tol_mps2: float = 0.45
+    ay_tol_rel: float = 0.15
+    steer_tol_rad: float = 6.0 * _DEG
+    steer_tol_rel: float = 0.25
+    res_gain: float = 0.6  # tolerance per resolution step of the signal (quantisation)
+    # sensors lag each other (yaw-rate and a_y filters, the car's yaw response behind the steering): tolerance
+    # per unit of the yaw acceleration, as a time [s]
+    lag_yaw_s: float = 0.02  # the yaw-rate sensor and the wheels
+    lead_ay_s: float = 0.08  # a_y leads the yaw rate by the side-slip rate
+    lead_steer_s: float = 0.15  # the steering leads it by the car's yaw response
+    # the wheel- and steering-based rotation estimates pass a first-order lag like the inertial sensors' filters
+    inertial_lag_s: float = 0.04
+    brake_tol_mps2: float = 0.9  # pressure higher than the deceleration supports (stuck high)
+    brake_tol_low_mps2: float = 1.8  # deceleration the pressure does not explain (coasting, engine braking)
+    brake_tol_rel: float = 0.3
+    brake_min_bar: float = 3.0  # pressure above idle that counts as braking (learning the gain)
+    wheel_yaw_max_accel_mps2: float = 1.5  # the wheel pairs estimate the rotation below this |a_x|
+    ay_check_max_mps2: float = 6.0  # rotation relations are linear below this lateral acceleration
+    stuck_hold_s: float = 0.5
+    substitute_stale: bool = True  # a stale signal (message stopped) gets the others' prediction too
+    max_substituted: int = 3  # at most this many signals replaced at once (a whole ESP message is two)
+
+
+class _Rls:
+    """Recursive least squares with exponential forgetting, in plain floats (2 or 3 parameters)."""
+
+    def __init__(self, theta: list[float], prior_std: list[float], forget: float) -> None:
+        self.theta = list(theta)
+        n = len(theta)
+        self.P = [[(prior_std[i] ** 2 if i == j else 0.0) for j in range(n)] for i in range(n)]
+        self.forget = forget
+        self.n = 0
+
+    def update(self, phi: list[float], y: float, noise_var: float) -> None:
+        n = len(phi)
+        P = self.P
+        Pphi = [sum(P[i][j] * phi[j] for j in range(n)) for i in range(n)]
+        s = noise_var * self.forget + sum(phi[i] * Pphi[i] for i in range(n))
+        if not s > 0.0:
+            return
+        err = y - sum(self.theta[i] * phi[i] for i in range(n))
+        k = [p / s for p in Pphi]
+        for i in range(n):
+            self.theta[i] += k[i] * err
+        lam = self.forget
+        for i in range(n):
+            for j in range(n):
+                P[i][j] = (P[i][j] - k[i] * Pphi[j]) / lam
+        self.n += 1
+
+    def predict(self, phi: list[float]) -> float:
+        return sum(t * p for t, p in zip(self.theta, phi, strict=True))
+
+
+class _Ema:
+    __slots__ = ("a", "value")
+
+    def __init__(self, alpha: float, value: float = 0.0) -> None:
+        self.a = alpha
+        self.value = value
+
+    def update(self, x: float) -> float:
+        self.value += self.a * (x - self.value)
+        return self.value
+
+
+def _weighted_median(items: list[tuple[float, float]]) -> tuple[float, float]:
+    """``(value, sigma)`` of the weighted median of ``(value, sigma)`` pairs, weights ``1 / sigma^2``."""
+    items = sorted(items)
+    w = [1.0 / (sd * sd) for _, sd in items]
+    half = 0.5 * sum(w)
+    acc = 0.0
+    for (value, sd), wi in zip(items, w, strict=True):
+        acc += wi
+        if acc >= half:
+            return value, sd
+    return items[-1]
+
+
+def _median(xs: list[float]) -> float:
+    s = sorted(xs)
+    n = len(s)
+    m = n // 2
+    return s[m] if n % 2 else 0.5 * (s[m - 1] + s[m])
+
+
+@dataclass
+class _Check:
+    """Residual state of one signal."""
+
+    resid: float = 0.0  # smoothed residual [signal unit]
+    over_s: float = 0.0  # time above tolerance
+    under_s: float = 0.0  # time below half the tolerance (while flagged)
+    flagged: bool = False
+    reason: str = ""
+    since_t: float = math.nan
+    # stuck check: time the value last changed and the span of the prediction since
+    last_value: float = math.nan
+    changed_t: float = -math.inf
+    pred_lo: float = math.inf
+    pred_hi: float = -math.inf
+    resolution: float = math.inf  # smallest change seen
+
+
+SIGNAL_UNITS = {VS: ("m/s", 1.0), SW: ("deg", 1 / _DEG), YAW: ("deg/s", 1 / _DEG), AY: ("m/s^2", 1.0),
+                BP: ("bar", 1.0), FL: ("m/s", 1.0), FR: ("m/s", 1.0), RL: ("m/s", 1.0), RR: ("m/s", 1.0)}
+
+
+class Plausibility:
+    """Cross-checks of the onboard signals, one 50 Hz row per :meth:`check` (module docstring).
+
+    Parameters
+    ----------
+    rate_hz:
+        (9,) rate of each signal on this bus (signal map), for the stuck check's hold time.
+    config:
+        :class:`PlausibilityConfig`.
+    substituted:
+        (9,) bool, signals the car lacks (the map's ``absent``): never checked, never replaced.
+    """
+
+    def __init__(self, rate_hz, config: PlausibilityConfig | None = None, substituted=None,
+                 dt_s: float = schema.DT_S) -> None:
+        self.config = cfg = config or PlausibilityConfig()
+        self.dt_s = float(dt_s)
+        rate = np.asarray(rate_hz, dtype=float)
+        self.stuck_hold_s = [max(cfg.stuck_hold_s, 5.0 / float(r)) for r in rate]
+        self.absent = [bool(x) for x in (np.zeros(N, bool) if substituted is None else np.asarray(substituted))]
+        self.reset()
+
+    def reset(self) -> None:
+        cfg = self.config
+        dt = self.dt_s
+        forget = 1.0 - dt / cfg.learn_tau_s
+        self._alpha = [dt / (cfg.smooth_rot_s if i in (YAW, AY, SW) else cfg.smooth_s) for i in range(N)]
+        self.checks = [_Check() for _ in range(N)]
+        h2 = 2.0 * cfg.half_track_m
+        # wheel pairs: right - left = track * omega + eps * v
+        self.rear = _Rls([h2, 0.0], [0.2, 0.02], forget)
+        self.front = _Rls([h2, 0.0], [0.2, 0.02], forget)
+        # steering: delta_sw = c0 + c1 * omega / v + c2 * omega * v
+        self.steer = _Rls([0.0, cfg.steering_ratio * 2.7, cfg.steering_ratio * 0.002],
+                          [0.05, 20.0, 0.05], forget)
+        self.ay_offset = _Ema(dt / 20.0)
+        self.speedo_factor = _Ema(dt / 20.0, 1.04)
+        self.wheel_ratio = [_Ema(dt / 30.0, 1.0) for _ in range(4)]
+        self.brake_idle = _Ema(dt / 5.0, 0.0)
+        self.brake_gain = _Rls([0.1, 0.3], [0.1, 0.5], forget)  # decel = gain * (p - idle) + coast
+        self._v_lp = _Ema(dt / cfg.speedo_lag_s)
+        self._v_hist: list[float] = []
+        self._decel = 0.0
+        self._omega = 0.0
+        self._omega_rate = _Ema(dt / 0.1)
+        self._rate_env = 0.0
+        self._rate_decay = math.exp(-dt / (2.0 * cfg.smooth_s))
+        self._est_lp = {RL: _Ema(dt / cfg.inertial_lag_s), FL: _Ema(dt / cfg.inertial_lag_s),
+                        SW: _Ema(dt / cfg.inertial_lag_s)}
+        self._est_seen: dict[int, bool] = {RL: False, FL: False, SW: False}
+        self.moving_s = 0.0
+        self.turning_s = 0.0
+        self.braking_s = 0.0
+        self.flag_episodes = [0] * N
+        self.flag_rows = [0] * N
+        self.substituted_rows = [0] * N
+        self.first_flag: list[tuple[float, str] | None] = [None] * N
+        self._seen = [False] * N  # a valid value has arrived
+
+    # ---- one row --------------------------------------------------------------------------------------
+
+    def check(self, row: AssembledRow) -> AssembledRow:
+        """The row with flagged (and stale) signals invalid and replaced by the others' prediction."""
+        if not self.config.enabled:
+            return row
+        x = row.values.tolist()
+        valid = row.valid.tolist()
+        pred, newly = self._step(x, valid, row.t_s)
+        new_valid = list(valid)
+        subst = [False] * N
+        seen = self._seen
+        for i in range(N):
+            if valid[i]:
+                seen[i] = True
+            c = self.checks[i]
+            if c.flagged and not self.absent[i]:
+                new_valid[i] = False
+                self.flag_rows[i] += 1
+        out = [i for i in range(N) if not new_valid[i] and not self.absent[i]]
+        # replace only while enough of the car is left to predict from: a signal never received is a map
+        # mistake (the runtime says so), and with most of the bus gone there is nothing to predict from
+        if 0 < len(out) <= self.config.max_substituted:
+            for i in out:
+                if seen[i] and (self.checks[i].flagged or self.config.substitute_stale) and pred[i] is not None:
+                    x[i] = pred[i]
+                    subst[i] = True
+                    self.substituted_rows[i] += 1
+        if not any(subst) and not newly and new_valid == valid:
+            return row
+        return replace(row, values=np.asarray(x), valid=np.asarray(new_valid, dtype=bool),
+                       substituted=np.asarray(subst, dtype=bool), newly_flagged=tuple(newly))
+
+    def _ok(self, i: int, valid: list[bool]) -> bool:
+        return valid[i] and not self.checks[i].flagged
+
+    def _step(self, x: list[float], valid: list[bool], t: float) -> tuple[list[float | None], list[int]]:
+        cfg = self.config
+        dt = self.dt_s
+        pred: list[float | None] = [None] * N
+        tol = [math.inf] * N
+        resid: list[float | None] = [None] * N
+        h = cfg.half_track_m
+        w = self._omega
+        ok = [self._ok(i, valid) for i in range(N)]
+
+        # ---- 1. speed ----
+        lever = (-h, h, -h, h)
+        steer_road = abs(x[SW]) / cfg.steering_ratio if valid[SW] else 0.0
+        cos_front = math.cos(min(steer_road, 1.0))
+        u = [0.0] * 4
+        for j, i in enumerate(WHEELS):
+            ui = x[i] - lever[j] * w
+            if j < 2:
+                ui *= cos_front  # a steered wheel runs on a larger radius than the rear axle
+            u[j] = ui / self.wheel_ratio[j].value
+        usable = [j for j, i in enumerate(WHEELS) if ok[i]]
+        v_hat = _median([u[j] for j in usable]) if usable else (
+            x[VS] / self.speedo_factor.value if ok[VS] else None)
+        moving = v_hat is not None and v_hat >= cfg.min_speed_mps
+        if moving:
+            self.moving_s += dt
+        v = v_hat if v_hat is not None else 0.0
+        for j, i in enumerate(WHEELS):
+            others = [u[k] for k in usable if k != j]
+            if not others:
+                continue
+            ref = _median(others)
+            back = ref * self.wheel_ratio[j].value
+            if j < 2:
+                back /= cos_front
+            pred[i] = max(back + lever[j] * w, 0.0)
+            if moving and len(others) >= 2 and valid[i]:
+                slack = (1.0 / cos_front - 1.0) * ref
+                rel = cfg.wheel_tol_rel + cfg.wheel_slip_per_mps2 * abs(self._decel)
+                tol[i] = cfg.wheel_tol_mps + rel * ref + slack
+                resid[i] = x[i] - pred[i]
+                if ok[i] and len(others) == 3 and self.checks[i].resid ** 2 < 0.25 * tol[i] ** 2:
+                    self.wheel_ratio[j].update(self.wheel_ratio[j].value * u[j] / ref if ref > 0 else 1.0)
+        v_lp = self._v_lp.update(v) if v_hat is not None else self._v_lp.value
+        pred[VS] = self.speedo_factor.value * v_lp if usable else None
+        if moving and valid[VS] and len(usable) >= 2:
+            tol[VS] = cfg.speedo_tol_mps + cfg.speedo_tol_rel * v_lp
+            resid[VS] = x[VS] - pred[VS]  # type: ignore[operator]
+            if ok[VS] and self.checks[VS].resid ** 2 < 0.25 * tol[VS] ** 2:
+                self.speedo_factor.update(x[VS] / v_lp if v_lp > 0 else self.speedo_factor.value)
+
+        hist = self._v_hist
+        if v_hat is None:
+            hist.clear()  # nothing to differentiate: the deceleration restarts when the wheels are back
+        else:
+            hist.append(v)
+        if len(hist) > 11:
+            del hist[0]
+        decel = (hist[0] - hist[-1]) / (10 * dt) if len(hist) == 11 else 0.0
+        self._decel = decel  # (the wheel check of the next row uses it)
+
+        # ---- 2. rotation ----
+        # braking or accelerating hard, the inner wheels slip more than the outer (load transfer): the wheel
+        # pairs do not measure the rotation then
+        grip = abs(decel) < cfg.wheel_yaw_max_accel_mps2
+        est: dict[int, float] = {}  # source signal (YAW, AY, SW, RL for the rear pair, FL for the front) -> omega
+        sd: dict[int, float] = {}  # and its uncertainty [rad/s]
+        env = self._rate_env
+        if valid[YAW]:
+            est[YAW] = x[YAW]
+            sd[YAW] = 0.3 * _DEG + 0.5 * self._resolution(YAW) + cfg.lag_yaw_s * env
+        if moving:
+            if grip and ok[RL] and ok[RR] and self.rear.n * dt >= cfg.warmup_s:
+                est[RL] = (x[RR] - x[RL] - self.rear.theta[1] * v) / self.rear.theta[0]
+            if grip and ok[FL] and ok[FR] and self.front.n * dt >= cfg.warmup_s:
+                est[FL] = (x[FR] - x[FL] - self.front.theta[1] * v) / (self.front.theta[0] * cos_front)
+            if valid[AY] and self.moving_s >= cfg.warmup_s:
+                est[AY] = (x[AY] - self.ay_offset.value) / v
+                sd[AY] = (0.2 + 0.1 * abs(x[AY]) + 0.5 * self._resolution(AY)) / v + cfg.lead_ay_s * env
+            if valid[SW] and self.turning_s >= cfg.warmup_s:
+                g = self.steer.theta[1] / v + self.steer.theta[2] * v
+                if g > 1.0:
+                    est[SW] = (x[SW] - self.steer.theta[0]) / g
+                    sd[SW] = (1.0 * _DEG + 0.1 * abs(x[SW]) + 0.5 * self._resolution(SW)) / g + cfg.lead_steer_s * env
+        for s_, lp in self._est_lp.items():
+            if s_ in est:
+                if not self._est_seen[s_]:
+                    lp.value = est[s_]
+                est[s_] = lp.update(est[s_])
+                if s_ in (RL, FL):
+                    sd[s_] = (0.015 + 0.001 * v) / 1.56 + 0.02 * abs(est[s_]) + cfg.lag_yaw_s * env
+            self._est_seen[s_] = s_ in est
+        sources_ok = {s: e for s, e in est.items() if s in (RL, FL) or ok[s]}
+        if sources_ok:
+            omega = _weighted_median([(e, sd[k]) for k, e in sources_ok.items()])[0]
+        else:
+            omega = 0.0 if v_hat is not None and v < 1.0 else w
+        # yaw acceleration envelope: peak-held, decaying over the residuals' memory
+        rate = max(abs(self._omega_rate.update((omega - w) / dt)), self._rate_env * self._rate_decay)
+        self._rate_env = rate
+        for s in (YAW, AY, SW):
+            others = [(e, sd[k]) for k, e in sources_ok.items() if k != s]
+            w_ref, sd_ref = _weighted_median(others) if others else (omega, math.inf)
+            if not others and not (v_hat is not None and v < 1.0):
+                pass  # nothing left to predict the rotation from
+            elif s == YAW:
+                pred[YAW] = w_ref
+            elif s == AY:
+                pred[AY] = self.ay_offset.value + v * w_ref
+            elif v > 3.0:
+                pred[SW] = self.steer.predict([1.0, w_ref / v, w_ref * v])
+            elif valid[SW]:
+                pred[SW] = x[SW]  # parking: nothing predicts the steering; hold it
+            if not (moving and s in est and len(others) >= 2):
+                continue
+            res = self._resolution(s)
+            if s == YAW:
+                tol[s] = cfg.yaw_tol_radps + cfg.yaw_tol_rel * abs(w_ref) + cfg.res_gain * res + sd_ref
+            elif s == AY:
+                tol[s] = (cfg.ay_tol_mps2 + cfg.ay_tol_rel * abs(pred[AY]) + cfg.res_gain * res  # type: ignore[arg-type]
+                          + (sd_ref + cfg.lead_ay_s * rate) * v)
+            else:
+                g = self.steer.theta[1] / v + self.steer.theta[2] * v
+                tol[s] = (cfg.steer_tol_rad + cfg.steer_tol_rel * abs(pred[SW]) + cfg.res_gain * res  # type: ignore[arg-type]
+                          + (sd_ref + cfg.lead_steer_s * rate) * g)
+            resid[s] = x[s] - pred[s]  # type: ignore[operator]
+        self._omega = omega
+        self.last_estimates = sources_ok
+        # learning the rotation relations from the gyro, while everything involved agrees
+        calm = moving and ok[YAW] and (not valid[AY] or abs(x[AY]) < cfg.ay_check_max_mps2)
+        if calm:
+            wy = x[YAW]
+            if grip and ok[RL] and ok[RR]:
+                self.rear.update([wy, v], x[RR] - x[RL], 0.02 ** 2)
+            if grip and ok[FL] and ok[FR]:
+                self.front.update([wy * cos_front, v], x[FR] - x[FL], 0.03 ** 2)
+            if ok[AY] and abs(x[AY]) < 3.0:
+                self.ay_offset.update(x[AY] - v * wy)
+            if ok[SW] and abs(x[AY] if valid[AY] else v * wy) < 4.0:
+                self.steer.update([1.0, wy / v, wy * v], x[SW], (2.0 * _DEG) ** 2)
+                if abs(wy) > 2.0 * _DEG:
+                    self.turning_s += dt
+
+        # ---- 3. brake: the wheels' deceleration against the pressure's ----
+        idle = self.brake_idle.value
+        g_b, coast = self.brake_gain.theta
+        if g_b > 0.02 and usable:
+            pred[BP] = idle + max(decel - coast, 0.0) / g_b
+        if valid[BP] and v > 3.0 and len(hist) == 11:
+            if ok[BP]:
+                if decel < 0.2 and x[BP] < idle + cfg.brake_min_bar:
+                    self.brake_idle.update(x[BP])
+                if x[BP] > idle + cfg.brake_min_bar:
+                    self.braking_s += dt
+                self.brake_gain.update([max(x[BP] - idle, 0.0), 1.0], decel, 0.3 ** 2)
+            if self.braking_s >= 2.0 and g_b > 0.02 and moving and pred[BP] is not None:
+                a_pred = g_b * max(x[BP] - idle, 0.0) + coast
+                # in bar; pressure above the prediction (r > 0) gets the tighter tolerance
+                r = x[BP] - pred[BP]  # type: ignore[operator]
+                low = self.checks[BP].resid < 0.0
+                tol[BP] = ((cfg.brake_tol_low_mps2 if low else cfg.brake_tol_mps2)
+                           + cfg.brake_tol_rel * abs(a_pred)) / g_b
+                resid[BP] = r
+
+        # ---- 4. residuals, stuck, flags ----
+        newly = []
+        for i in range(N):
+            if self.absent[i] or not valid[i]:
+                continue
+            c = self.checks[i]
+            xi = x[i]
+            if xi != c.last_value:
+                if math.isfinite(c.last_value):
+                    step = abs(xi - c.last_value)
+                    if step < c.resolution:
+                        c.resolution = step
+                c.last_value = xi
+                c.changed_t = t
+                c.pred_lo, c.pred_hi = math.inf, -math.inf
+            p = pred[i]
+            r = resid[i]
+            if r is None:
+                continue
+            c.resid += self._alpha[i] * (r - c.resid)
+            ti = tol[i]
+            if p is not None:
+                c.pred_lo = min(c.pred_lo, p)
+                c.pred_hi = max(c.pred_hi, p)
+            stuck = (t - c.changed_t >= self.stuck_hold_s[i] and c.pred_hi - c.pred_lo > 2.0 * ti
+                     and c.pred_hi - c.pred_lo > 3.0 * self._resolution(i))
+            if not c.flagged:
+                if abs(c.resid) > ti:
+                    c.over_s += dt
+                else:
+                    c.over_s = 0.0
+                if c.over_s >= cfg.confirm_s or stuck:
+                    c.flagged = True
+                    c.since_t = t
+                    c.under_s = 0.0
+                    c.reason = self._reason(i, xi, p, c, stuck, t)
+                    newly.append(i)
+                    self.flag_episodes[i] += 1
+                    if self.first_flag[i] is None:
+                        self.first_flag[i] = (t, c.reason)
+            else:
+                if abs(c.resid) < 0.5 * ti and t - c.changed_t < self.stuck_hold_s[i]:
+                    c.under_s += dt
+                    if c.under_s >= cfg.clear_s:
+                        c.flagged = False
+                        c.over_s = 0.0
+                        c.reason = ""
+                else:
+                    c.under_s = 0.0
+        return pred, newly
+
+    def _resolution(self, i: int) -> float:
+        """Smallest change of signal ``i`` seen so far; the coarsest common step until it has changed."""
+        res = self.checks[i].resolution
+        return res if math.isfinite(res) else schema.SIGNALS[i].revsted_step
+
+    def _reason(self, i: int, x: float, p: float | None, c: _Check, stuck: bool, t: float) -> str:
+        unit, k = SIGNAL_UNITS[i]
+        ref = f"{p * k:.2f}" if p is not None else "?"
+        if stuck:
+            return f"stuck at {x * k:.2f} {unit} for {t - c.changed_t:.1f} s while the others moved it to {ref}"
+        if x == 0.0 and p is not None and abs(p) > 0.0:
+            return f"dropout: reads 0 where the others say {ref} {unit}"
+        if i in WHEELS or i == VS:
+            ratio = x / p if p else math.nan
+            return f"scale: reads {x * k:.2f} {unit}, {ratio:.3f} x what the others say ({ref})"
+        return f"offset: reads {x * k:.2f} {unit} where the others say {ref} ({c.resid * k:+.2f})"
+
+    # ---- reporting ------------------------------------------------------------------------------------
+
+    @property
+    def flagged(self) -> np.ndarray:
+        return np.array([c.flagged for c in self.checks], dtype=bool)
+
+    def reasons(self) -> dict[str, str]:
+        """``{signal name: why it is out}`` for the signals flagged now."""
+        return {schema.SIGNAL_NAMES[i]: c.reason for i, c in enumerate(self.checks) if c.flagged}
+
+    def summary(self) -> dict:
+        names = schema.SIGNAL_NAMES
+        return {
+            "enabled": self.config.enabled,
+            "flagged_now": self.reasons(),
+            "flag_episodes": {names[i]: n for i, n in enumerate(self.flag_episodes) if n},
+            "flagged_rows": {names[i]: n for i, n in enumerate(self.flag_rows) if n},
+            "substituted_rows": {names[i]: n for i, n in enumerate(self.substituted_rows) if n},
+            "first_flag": {names[i]: {"t_s": f[0], "reason": f[1]} for i, f in enumerate(self.first_flag) if f},
+            "learned": {"rear_track_m": self.rear.theta[0], "rear_radius_diff": self.rear.theta[1],
+                        "front_track_m": self.front.theta[0], "front_radius_diff": self.front.theta[1],
+                        "lat_accel_offset_mps2": self.ay_offset.value, "speedometer_factor": self.speedo_factor.value,
+                        "steering_gain": self.steer.theta[1], "steering_understeer": self.steer.theta[2],
+                        "wheel_ratio": [e.value for e in self.wheel_ratio],
+                        "brake_gain_mps2_per_bar": self.brake_gain.theta[0]},
+            "driving_s": self.moving_s,
+        }
