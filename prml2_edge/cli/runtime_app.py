@@ -123,6 +123,7 @@ def summary_lines(summary: dict) -> list[str]:
     faults += [f"{name} frozen {n}x" for name, n in frozen.items()]
     if faults:
         lines.append("faults: " + ", ".join(faults))
+    lines += plausibility_lines(summary)
     steps = ", ".join(f"{k} {v}" for k, v in summary["steps_by_status"].items()) or "none"
     lines.append(f"50 Hz steps: {summary['rows']} ({steps}); model used on {summary['model_used_steps']}; "
                  f"inferences {summary['inferences']} ({summary['inference_failures']} failed); "
@@ -142,6 +143,30 @@ def summary_lines(summary: dict) -> list[str]:
     for name, s in summary.get("sinks", {}).items():
         if s.get("errors"):
             lines.append(f"WARNING {name}: {s['errors']} write errors ({s.get('last_error', '')})")
+    return lines
+
+
+def plausibility_lines(summary: dict) -> list[str]:
+    """Signals the cross-checks took out, messages suspected of injection, GNSS fixes refused as suspect."""
+    lines = []
+    pl = summary.get("plausibility") or {}
+    for name, first in (pl.get("first_flag") or {}).items():
+        rows = (pl.get("flagged_rows") or {}).get(name, 0)
+        subst = (pl.get("substituted_rows") or {}).get(name, 0)
+        lines.append(f"signal check: {name} taken out {pl['flag_episodes'].get(name, 0)}x "
+                     f"({rows / 50.0:.1f} s, substituted {subst / 50.0:.1f} s); first at t={first['t_s']:.2f} s: "
+                     f"{first['reason']}")
+    for name, why in (pl.get("flagged_now") or {}).items():
+        lines.append(f"WARNING {name} still out at the end: {why}")
+    for name, inj in (summary.get("injection_suspected") or {}).items():
+        rate = f", {inj['observed_hz']:.0f} frames/s for a declared {inj['declared_hz']:.0f}" \
+            if inj.get("observed_hz") else ""
+        lines.append(f"WARNING injection suspected on {name} (ID {inj['id']}): {inj['episodes']} episode(s){rate}; "
+                     f"{inj['intruder_frames_rejected']} frames of a second sender rejected")
+    spoof = summary.get("gnss_suspect") or {}
+    if spoof.get("episodes"):
+        lines.append(f"WARNING GNSS suspect {spoof['episodes']}x ({spoof['fixes_refused']} fixes not fused): "
+                     f"{spoof.get('first_reason', '')}")
     return lines
 
 

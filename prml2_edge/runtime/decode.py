@@ -8,13 +8,24 @@ data length equals the DBC's, checksum, alive counter, decode, then per value: q
 finiteness, the schema's physical range. A value failing a check is dropped (counted per
 signal); the frame is ``USED`` when at least one value or a GNSS fix survives. Nothing
 raises on the hot path.
+
+Injected frames (a second sender on the bus, :class:`InjectionMonitor` per message): a message
+whose frames arrive faster than its declared rate (the signal map's ``rate_hz``) by
+:data:`RATE_MARGIN` over the last :data:`RATE_WINDOW_S`, or whose alive counter shows two
+interleaved sequences, is *injection suspected* (``DecodedFrame.injection``, the summary and the
+status line name the message and ID). With a counter, the decoder then follows the ECU's sequence
+(the one that was there first) and rejects the frames continuing the other as
+``REJECTED_INTRUDER``; exact repeats of the previous payload (a gateway duplicating frames) are
+not counted as a second sender (the counter check rejects them). The suspicion ends
+:data:`CLEAR_S` after the last evidence.
 """
 
 from __future__ import annotations
 
+import collections
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import can
 import cantools
@@ -24,6 +35,55 @@ from prml2_edge.can.checksum import checksum_function
 from prml2_edge.can.signal_map import SignalMap
 from prml2_edge.runtime.rows import DecodedFrame, GnssFix
 from prml2_edge.runtime.status import FrameStatus
+
+RATE_MARGIN = 1.4  # frames per RATE_WINDOW_S above this many times the declared rate: a second sender
+RATE_WINDOW_S = 1.0
+CLEAR_S = 2.0  # no evidence for this long: the suspicion ends
+
+
+@dataclass
+class InjectionMonitor:
+    """Rate and counter-sequence evidence of a second sender for one message (module docstring)."""
+
+    rate_hz: float
+    times: collections.deque = field(default_factory=collections.deque)
+    last_payload: bytes = b""
+    prev_counter: int | None = None  # the counter before the last frame's
+    primary: int | None = None  # two-track mode: head of the ECU's sequence ...
+    secondary: int | None = None  # ... and of the intruder's
+    evidence_t: float = -math.inf  # last time a frame showed a second sender
+    since_t: float | None = None  # suspicion started
+    observed_hz: float = 0.0
+    intruder_frames: int = 0
+    episodes: int = 0
+
+    def rate(self, t: float, payload: bytes) -> None:
+        """Count a frame at ``t`` [s] (not an exact repeat of the previous payload) in the rate window."""
+        if payload == self.last_payload:
+            return
+        self.last_payload = payload
+        times = self.times
+        if times and t < times[-1] - 0.25:
+            times.clear()  # the clock jumped back
+        times.append(t)
+        while times and times[0] <= t - RATE_WINDOW_S:
+            times.popleft()
+        n = len(times)
+        if n > RATE_MARGIN * self.rate_hz * RATE_WINDOW_S + 1:
+            self.observed_hz = n / RATE_WINDOW_S
+            self.evidence(t)
+
+    def evidence(self, t: float) -> None:
+        if self.since_t is None:
+            self.since_t = t
+            self.episodes += 1
+        self.evidence_t = t
+
+    def suspected(self, t: float) -> bool:
+        if self.since_t is not None and t - self.evidence_t > CLEAR_S:
+            self.since_t = None
+            self.primary = self.secondary = None
+        return self.since_t is not None
 
 
 @dataclass
@@ -54,6 +114,7 @@ class _MessagePlan:
     gnss: object = None  # GnssSpec when this message carries the GNSS fix
     last_counter: int | None = None
     min_length: int | None = None  # shortest payload accepted (maps with short_frames): holds every mapped bit
+    injection: InjectionMonitor | None = None
 
 
 class FrameDecoder:
@@ -83,6 +144,12 @@ class FrameDecoder:
         if signal_map.short_frames:
             for plan in self.plans.values():
                 plan.min_length = _bytes_needed(plan, signal_map)
+        rates: dict[str, float] = {}
+        for spec in signal_map.present:
+            rates[spec.message] = max(rates.get(spec.message, 0.0), spec.rate_hz)
+        for plan in self.plans.values():
+            if plan.name in rates:
+                plan.injection = InjectionMonitor(rates[plan.name])
 
     def _plan(self, signal_map: SignalMap, db: cantools.database.can.Database, name: str) -> _MessagePlan:
         msg = db.get_message_by_name(name)
@@ -127,15 +194,15 @@ class FrameDecoder:
             if int(decoded[plan.checksum]) != expected:
                 return DecodedFrame(FrameStatus.REJECTED_CHECKSUM, t_s, plan.name)
         gap = False
+        mon = plan.injection
+        if mon is not None:
+            mon.rate(t_s, bytes(data))
         if plan.counter is not None:
-            counter = int(decoded[plan.counter])
-            last, plan.last_counter = plan.last_counter, counter
-            if last is not None:
-                delta = (counter - last) % plan.counter_modulus
-                if delta == 0 or delta > min(self.max_counter_jump, plan.counter_modulus - 2):
-                    return DecodedFrame(FrameStatus.REJECTED_COUNTER, t_s, plan.name)
-                gap = delta > 1
-        out = DecodedFrame(FrameStatus.USED, t_s, plan.name, counter_gap=gap)
+            status, gap = self._counter(plan, int(decoded[plan.counter]), t_s)
+            if status is not FrameStatus.USED:
+                return DecodedFrame(status, t_s, plan.name, injection=mon is not None and mon.suspected(t_s))
+        out = DecodedFrame(FrameStatus.USED, t_s, plan.name, counter_gap=gap,
+                           injection=mon is not None and mon.suspected(t_s))
         n_out_of_range = n_nonfinite = n_invalid = 0
         for sp in plan.signals:
             physical = decoded[sp.signal] if sp.parts is None else sum(decoded[p] * w for p, w in sp.parts)
@@ -167,6 +234,70 @@ class FrameDecoder:
                 out.status = FrameStatus.REJECTED_NONFINITE
         return out
 
+
+    def _counter(self, plan: _MessagePlan, counter: int, t_s: float) -> tuple[FrameStatus, bool]:
+        """The alive-counter check: ``(status, gap)``. Two interleaved sequences switch to following the first."""
+        mod = plan.counter_modulus
+        jump = min(self.max_counter_jump, mod - 2)
+        mon = plan.injection
+        if mon is not None and mon.suspected(t_s) and mon.primary is not None:
+            d_p = (counter - mon.primary) % mod
+            d_s = (counter - mon.secondary) % mod if mon.secondary is not None else 0
+            if 1 <= d_s <= 2 and not d_p == 1:
+                mon.secondary = counter
+                mon.intruder_frames += 1
+                mon.evidence(t_s)
+                return FrameStatus.REJECTED_INTRUDER, False
+            mon.primary = counter
+            plan.last_counter = counter
+            if d_p == 0 or d_p > jump:
+                return FrameStatus.REJECTED_COUNTER, False
+            return FrameStatus.USED, d_p > 1
+        last, plan.last_counter = plan.last_counter, counter
+        prev = None
+        if mon is not None:
+            prev, mon.prev_counter = mon.prev_counter, last
+        if last is None:
+            return FrameStatus.USED, False
+        delta = (counter - last) % mod
+        if delta != 1 and prev is not None and (counter - prev) % mod == 1 and delta != 0:
+            # this frame continues the sequence before the last frame: the last one came from someone else
+            mon.evidence(t_s)  # type: ignore[union-attr]
+            mon.primary, mon.secondary = counter, last  # type: ignore[union-attr]
+            return FrameStatus.USED, False
+        if delta == 0 or delta > jump:
+            return FrameStatus.REJECTED_COUNTER, False
+        return FrameStatus.USED, delta > 1
+
+    def injection_summary(self, t_s: float | None = None) -> dict:
+        """``{message: {...}}`` for every message that was ever suspected of injection."""
+        out = {}
+        for plan in self.plans.values():
+            mon = plan.injection
+            if mon is None or not mon.episodes:
+                continue
+            out[plan.name] = {"id": f"{plan.frame_id:#x}", "episodes": mon.episodes,
+                              "suspected_now": mon.since_t is not None if t_s is None else mon.suspected(t_s),
+                              "last_evidence_s": mon.evidence_t, "observed_hz": mon.observed_hz or None,
+                              "declared_hz": mon.rate_hz, "intruder_frames_rejected": mon.intruder_frames}
+        return out
+
+    def untrusted_signals(self, t_s: float) -> dict[int, str]:
+        """``{canonical index: reason}`` for signals of messages suspected of injection that have no counter to
+        tell the frames apart: their values cannot be trusted at all while the suspicion lasts."""
+        out = {}
+        for p in self.plans.values():
+            mon = p.injection
+            if mon is not None and p.counter is None and mon.since_t is not None and mon.suspected(t_s):
+                for sp in p.signals:
+                    out[sp.index] = (f"injection suspected on {p.name} (ID {p.frame_id:#x}): "
+                                     f"{mon.observed_hz:.0f} frames/s, declared {mon.rate_hz:.0f}")
+        return out
+
+    def suspected_messages(self, t_s: float) -> list[str]:
+        """``"NAME (ID 0x..)"`` for every message suspected of injection at ``t_s``."""
+        return [f"{p.name} (ID {p.frame_id:#x})" for p in self.plans.values()
+                if p.injection is not None and p.injection.suspected(t_s)]
 
 
 def _bytes_needed(plan: _MessagePlan, signal_map: SignalMap) -> int:

@@ -1,7 +1,7 @@
 """Per-stage latency: ``time.perf_counter_ns`` samples -> p50/p95/p99/max and deadline misses.
 
-Stages: ``decode`` and ``assemble`` per frame; ``plausibility`` (the cross-checks) per 50 Hz row; ``infer`` (onnxruntime) and ``guard`` per
-inference; ``filter`` (EKF step and GNSS fusion) and ``sinks`` per 50 Hz step;
+Stages: ``decode`` and ``assemble`` per frame; ``plausibility`` (the cross-checks) per 50 Hz row;
+``infer`` (onnxruntime) and ``guard`` per inference; ``filter`` (EKF step and GNSS fusion) and ``sinks`` per 50 Hz step;
 ``end_to_end`` per 50 Hz step, from the moment the frame that completed the row was received
 to the moment every sink had the result. The 50 Hz deadline is 20 ms.
 """

@@ -111,6 +111,7 @@ class Pipeline:
                  plausibility: Plausibility | None = None) -> None:
         self.signal_map = signal_map
         self.plausibility = plausibility
+        self._suspicion = False  # some message is suspected of injection (decode.InjectionMonitor)
         self.decoder = decoder
         self.assembler = assembler
         self.localizer = localizer
@@ -202,6 +203,12 @@ class Pipeline:
         recv_ns = t0 if recv_ns is None else recv_ns
         outs = self._gnss_due(float(msg.timestamp), recv_ns) if self.gnss_sources else []
         frame = self.decoder.step(msg)
+        if frame.injection and not self._suspicion:
+            self._suspicion = True
+            log.warning("injection suspected on %s at t=%.2f s: a second sender on the bus (rate or counter sequence)",
+                        ", ".join(self.decoder.suspected_messages(frame.t_s)), frame.t_s)
+        elif self._suspicion and not frame.injection and frame.message is not None:
+            self._suspicion = bool(self.decoder.suspected_messages(frame.t_s))
         t1 = time.perf_counter_ns()
         status, rows = self.assembler.step(frame, recv_ns)
         t2 = time.perf_counter_ns()
@@ -221,7 +228,7 @@ class Pipeline:
         if self.plausibility is None:
             return row
         t0 = time.perf_counter_ns()
-        row = self.plausibility.check(row)
+        row = self.plausibility.check(row, self.decoder.untrusted_signals(row.t_s) if self._suspicion else None)
         self.latency.add("plausibility", time.perf_counter_ns() - t0)
         for i in row.newly_flagged:
             log.warning("%s taken out at t=%.2f s: %s", schema.SIGNAL_NAMES[i], row.t_s,
@@ -321,6 +328,8 @@ class Pipeline:
         for i in np.flatnonzero(~row.valid):
             name = schema.SIGNAL_NAMES[i]
             why = checks[i].reason if checks is not None and checks[i].flagged else "stale (no valid frame)"
+            if self.plausibility is not None and i in self.plausibility.untrusted:
+                why = self.plausibility.untrusted[i]
             if self.assembler.frozen[i]:
                 why = "frozen (stuck-sensor check)"
             if row.substituted is not None and row.substituted[i]:
@@ -368,6 +377,9 @@ class Pipeline:
         if out is not None:
             invalid = [schema.SIGNALS[i].symbol for i in np.flatnonzero(~out.valid)]
             parts.append("invalid: " + (",".join(invalid) if invalid else "none"))
+            suspected = self.decoder.suspected_messages(out.t_s) if self._suspicion else []
+            if suspected:
+                parts.append("INJECTION SUSPECTED " + ", ".join(suspected))
             if self.plausibility is not None:
                 flagged = self.plausibility.reasons()
                 if flagged:
@@ -421,6 +433,7 @@ class Pipeline:
             "rows": self.rows, "grid_resyncs": assembler["grid_resyncs"], "bus_silent_rows": self.bus_silent_rows,
             "signals_missing": self.missing_signals(),
             "plausibility": self.plausibility.summary() if self.plausibility is not None else {"enabled": False},
+            "injection_suspected": self.decoder.injection_summary(self.last.t_s if self.last is not None else None),
             "signal_faults": {"frozen_now": assembler["frozen_now"],
                               "frozen_episodes": {n: c for n, c in zip(schema.SIGNAL_NAMES, self.stats.signal_frozen,
                                                                         strict=True) if c}},

@@ -248,15 +248,25 @@ class Plausibility:
         self.substituted_rows = [0] * N
         self.first_flag: list[tuple[float, str] | None] = [None] * N
         self._seen = [False] * N  # a valid value has arrived
+        self.untrusted: dict[int, str] = {}  # signals taken out because their message is under attack
 
     # ---- one row --------------------------------------------------------------------------------------
 
-    def check(self, row: AssembledRow) -> AssembledRow:
-        """The row with flagged (and stale) signals invalid and replaced by the others' prediction."""
+    def check(self, row: AssembledRow, untrusted: dict[int, str] | None = None) -> AssembledRow:
+        """The row with flagged (and stale) signals invalid and replaced by the others' prediction.
+
+        ``untrusted`` ``{index: reason}``: signals to take out whatever they read (a message under attack).
+        """
         if not self.config.enabled:
             return row
         x = row.values.tolist()
         valid = row.valid.tolist()
+        if untrusted:
+            for i, why in untrusted.items():
+                valid[i] = False
+                self.untrusted[i] = why
+        elif self.untrusted:
+            self.untrusted.clear()
         pred, newly = self._step(x, valid, row.t_s)
         new_valid = list(valid)
         subst = [False] * N
@@ -268,12 +278,15 @@ class Plausibility:
             if c.flagged and not self.absent[i]:
                 new_valid[i] = False
                 self.flag_rows[i] += 1
+        for i in self.untrusted:
+            new_valid[i] = False
         out = [i for i in range(N) if not new_valid[i] and not self.absent[i]]
         # replace only while enough of the car is left to predict from: a signal never received is a map
         # mistake (the runtime says so), and with most of the bus gone there is nothing to predict from
         if 0 < len(out) <= self.config.max_substituted:
             for i in out:
-                if seen[i] and (self.checks[i].flagged or self.config.substitute_stale) and pred[i] is not None:
+                if seen[i] and (self.checks[i].flagged or i in self.untrusted or self.config.substitute_stale) \
+                        and pred[i] is not None:
                     x[i] = pred[i]
                     subst[i] = True
                     self.substituted_rows[i] += 1
@@ -524,8 +537,10 @@ class Plausibility:
         return np.array([c.flagged for c in self.checks], dtype=bool)
 
     def reasons(self) -> dict[str, str]:
-        """``{signal name: why it is out}`` for the signals flagged now."""
-        return {schema.SIGNAL_NAMES[i]: c.reason for i, c in enumerate(self.checks) if c.flagged}
+        """``{signal name: why it is out}`` for the signals flagged (or untrusted) now."""
+        out = {schema.SIGNAL_NAMES[i]: c.reason for i, c in enumerate(self.checks) if c.flagged}
+        out.update({schema.SIGNAL_NAMES[i]: why for i, why in self.untrusted.items()})
+        return out
 
     def summary(self) -> dict:
         names = schema.SIGNAL_NAMES

@@ -64,6 +64,7 @@ class DecodedFrame:
     late: list[int] = field(default_factory=list)  # signals dropped: older than the held value
     late_applied: bool = False  # older than the current row, but applied to the hold
     clock_jump: bool = False  # this frame confirmed a clock jump back (the grid was re-based)
+    injection: bool = False  # this frame's message is under suspicion of injection (decode.InjectionMonitor)
 
 
 @dataclass

@@ -24,6 +24,7 @@ class FrameStatus(IntEnum):
     REJECTED_INVALID = 8  # every mapped value flagged invalid by its quality bit
     REJECTED_LATE = 9  # older than the values already held for all its signals (out of order)
     REJECTED_TIMESTAMP = 10  # a clock jump not (yet) confirmed by the next frame: a lone outlier timestamp
+    REJECTED_INTRUDER = 11  # continues a second sender's counter sequence interleaved with the ECU's
 
     @property
     def is_rejected(self) -> bool:
