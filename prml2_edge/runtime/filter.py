@@ -32,6 +32,7 @@ import numpy as np
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import CalibrationNoise, CalibrationStd, Ekf, StepStatus, wrap_angle
 from prml2_edge.runtime.estimator import Estimate
+from prml2_edge.runtime.gnss_check import GnssCheck, GnssCheckConfig
 from prml2_edge.runtime.initial_pose import InitialPose, initial_state
 from prml2_edge.runtime.rows import GnssFix
 from prml2_edge.schema import EkfState
@@ -85,8 +86,10 @@ class PoseFilter:
         self.yaw_resolution_radps = float(self.config.yaw_cue_resolution_radps)
         self._yaw_cue_var = self._yaw_var()
         self.n_gnss_rejected = 0  # fixes refused by the innovation gate
+        self.n_gnss_suspect = 0  # fixes not fused because the odometry contradicts the fix stream
         self.n_gnss_init_rejected = 0  # first fixes that the next fix or the wheels contradicted
         self.n_standstill_updates = 0
+        self.gnss_check = GnssCheck(GnssCheckConfig(enabled=bool(getattr(self.config, "gnss_consistency", True))))
 
     @property
     def calibrated(self) -> bool:
@@ -104,6 +107,7 @@ class PoseFilter:
         if self.calibrated and self.calibration0 is not None:
             self.ekf.set_calibration(*self.calibration0)
         self._last_abs_t = t_s
+        self.gnss_check.reset()
 
     # ---- one step -----------------------------------------------------------------------------------
 
@@ -122,6 +126,7 @@ class PoseFilter:
             cues = self._cues(values, valid)
             standstill = still and self._zero_velocity()
             self._odometry(values, valid)
+        self._check_odometry(values, valid)
         gnss_fused = fix is not None and self._fuse(fix, t_s)
         if gnss_fused and self.calibrated:
             self._scale_from_gnss(fix, t_s)
@@ -207,6 +212,19 @@ class PoseFilter:
                                       cfg.wheel_cue_std_mps ** 2)
         return status is StepStatus.SUCCESS
 
+    def _check_odometry(self, values: np.ndarray, valid: np.ndarray) -> None:
+        """The GNSS check's own track: CAN yaw rate and rear wheels, calibrated by the filter's states (its own
+        estimates where a signal is out)."""
+        ekf = self.ekf
+        x = ekf.x  # type: ignore[union-attr]
+        cal = ekf.cal if ekf.calibration else None  # type: ignore[union-attr]
+        yaw = float(values[_YAW_RATE]) - (cal[0] if cal is not None else 0.0) if valid[_YAW_RATE] else float(x[_OMEGA])
+        if valid[_REAR].all():
+            wheel = float(np.mean(values[_REAR])) / (1.0 + (cal[1] if cal is not None else 0.0))
+        else:
+            wheel = float(x[_VX])
+        self.gnss_check.step(self.dt_s, yaw, wheel, float(x[_YAW]))
+
     def _odometry(self, values: np.ndarray, valid: np.ndarray) -> None:
         """Integrate the rear-axle wheel speed along the filter's heading; a gap or slow driving restarts it."""
         if self._odo_anchor is None:
@@ -273,7 +291,20 @@ class PoseFilter:
             yaw_var = math.radians(cfg.gnss_heading_std_deg) ** 2
         else:
             psi = None
-        if not self._gate(pos):
+        m2 = self._mahalanobis(pos)
+        ekf = self.ekf
+        trusted, correction = self.gnss_check.check(t_s, (float(pos[0]), float(pos[1])),
+                                                    (float(x[EkfState.POS][0]), float(x[EkfState.POS][1])),
+                                                    m2 <= cfg.gnss_gate_chi2)
+        if correction is not None:
+            # what was fused since the baseline's start was the spoofer's: back to the odometry's position
+            shift = correction - ekf.x[EkfState.POS]  # type: ignore[union-attr]
+            ekf.x[EkfState.POS] = correction  # type: ignore[union-attr]
+            ekf.P[EkfState.POS, EkfState.POS] += np.eye(2) * (float(shift @ shift) / 4.0 + 1.0)  # type: ignore[union-attr]
+        if not trusted:
+            self.n_gnss_suspect += 1
+            return False
+        if not self._gate(pos, m2):
             return False
         if psi is not None and yaw_var is not None:
             p = self.ekf.P  # type: ignore[union-attr]
@@ -287,17 +318,22 @@ class PoseFilter:
             return True
         return False
 
-    def _gate(self, pos: np.ndarray) -> bool:
-        """Innovation gate of a GNSS position (2,) [m]; False (and counted) when it is refused."""
-        cfg = self.config
+    def _mahalanobis(self, pos: np.ndarray) -> float:
+        """Squared Mahalanobis distance of a GNSS position (2,) [m] from the prediction."""
         p = self.ekf.P  # type: ignore[union-attr]
         d = pos - self.ekf.x[EkfState.POS]  # type: ignore[union-attr]
-        s = p[EkfState.POS, EkfState.POS] + np.eye(2) * cfg.gnss_pos_std_m ** 2
+        s = p[EkfState.POS, EkfState.POS] + np.eye(2) * self.config.gnss_pos_std_m ** 2
         with np.errstate(all="ignore"):
             try:
-                m2 = float(d @ np.linalg.solve(s, d))
+                return float(d @ np.linalg.solve(s, d))
             except np.linalg.LinAlgError:
-                m2 = math.inf
+                return math.inf
+
+    def _gate(self, pos: np.ndarray, m2: float) -> bool:
+        """Innovation gate of a GNSS position (2,) [m] at squared distance ``m2``; False (and counted) when it
+        is refused. Fixes the odometry trusts (:mod:`~prml2_edge.runtime.gnss_check`) that the gate refused
+        :attr:`gnss_gate_max_rejects` times in a row are fused anyway: then it is the filter that is off."""
+        cfg = self.config
         if math.isfinite(m2) and m2 <= cfg.gnss_gate_chi2:
             self._gnss_rejects_in_row = 0
             return True
@@ -327,6 +363,7 @@ class PoseFilter:
 
     def summary(self) -> dict:
         out = {"gnss_rejected": self.n_gnss_rejected, "gnss_init_rejected": self.n_gnss_init_rejected,
+               "gnss_suspect": self.gnss_check.summary(),
                "ekf_resets": self.ekf.n_resets if self.ekf is not None else 0}
         cal = self.calibration()
         if cal is not None:

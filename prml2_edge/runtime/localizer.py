@@ -51,6 +51,9 @@ class LocalizerConfig:
     # teleport the pose. After this many fixes rejected in a row (2 s at 10 Hz) the next one is fused
     # anyway, so a filter that really is off is pulled back.
     gnss_gate_chi2: float = 16.0
+    # GNSS against the wheels and the gyro (runtime/gnss_check.py): a fix stream the odometry contradicts is
+    # suspect and not fused (a spoofer walking the position away passes the gate at every fix)
+    gnss_consistency: bool = True
     gnss_gate_max_rejects: int = 20
     # GNSS start-up: the first fix becomes the pose only when the next one (within gnss_init_max_gap_s)
     # agrees with it and with the wheel speeds: |distance - mean wheel speed * dt| within
@@ -321,9 +324,10 @@ class StreamingLocalizer:
         self.n_model_used += int(model_used)
         gnss_outage = ekf is not None and flt.had_fix() and not gnss_recent
         z, z_var = (est.z, est.z_var) if model_used else (None, None)
+        reasons = {"gnss": flt.gnss_check.reason} if flt.gnss_check.suspect else None
         return StepOutput(self.k, t_s, x, pos_std, yaw_std, status, ekf_status, model_used, est.inferred,
                           est.guard_fired and model_used, gnss_fused, gnss_outage, outage, not all_valid,
-                          valid.copy(), z, z_var, pos_cov=pos_cov, cal=cal)
+                          valid.copy(), z, z_var, pos_cov=pos_cov, cal=cal, reasons=reasons)
 
     # ---- counters the pipeline reports ------------------------------------------------------------
 

@@ -397,6 +397,8 @@ class Pipeline:
                 p_x, p_y = out.x[EkfState.POS]
                 parts.append(f"pose ({p_x:.1f}, {p_y:.1f}) m +-{out.pos_std_m:.1f} {out.status.name}"
                              + (f" outage {out.outage_s:.0f} s" if out.gnss_outage else ""))
+            if out.reasons and "gnss" in out.reasons:
+                parts.append(out.reasons["gnss"])
         return " | ".join(parts)
 
     def _localizer_summary(self, loc: StreamingLocalizer) -> dict:
