@@ -53,6 +53,7 @@ class InjectionMonitor:
     secondary: int | None = None  # ... and of the intruder's
     evidence_t: float = -math.inf  # last time a frame showed a second sender
     since_t: float | None = None  # suspicion started
+    first_t: float | None = None  # the first suspicion started
     observed_hz: float = 0.0
     intruder_frames: int = 0
     episodes: int = 0
@@ -77,6 +78,8 @@ class InjectionMonitor:
         if self.since_t is None:
             self.since_t = t
             self.episodes += 1
+            if self.first_t is None:
+                self.first_t = t
         self.evidence_t = t
 
     def suspected(self, t: float) -> bool:
@@ -278,7 +281,8 @@ class FrameDecoder:
                 continue
             out[plan.name] = {"id": f"{plan.frame_id:#x}", "episodes": mon.episodes,
                               "suspected_now": mon.since_t is not None if t_s is None else mon.suspected(t_s),
-                              "last_evidence_s": mon.evidence_t, "observed_hz": mon.observed_hz or None,
+                              "first_s": mon.first_t, "last_evidence_s": mon.evidence_t,
+                              "observed_hz": mon.observed_hz or None,
                               "declared_hz": mon.rate_hz, "intruder_frames_rejected": mon.intruder_frames}
         return out
 

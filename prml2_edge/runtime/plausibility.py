@@ -101,6 +101,7 @@ class PlausibilityConfig:
     wheel_yaw_max_accel_mps2: float = 1.5  # the wheel pairs estimate the rotation below this |a_x|
     ay_check_max_mps2: float = 6.0  # rotation relations are linear below this lateral acceleration
     stuck_hold_s: float = 0.5
+    stuck_span_tol: float = 0.75  # ... while the prediction moved by this many tolerances (and 3 resolution steps)
     substitute_stale: bool = True  # a stale signal (message stopped) gets the others' prediction too
     max_substituted: int = 3  # at most this many signals replaced at once (a whole ESP message is two)
 
@@ -341,6 +342,8 @@ class Plausibility:
                 resid[i] = x[i] - pred[i]
                 if ok[i] and len(others) == 3 and self.checks[i].resid ** 2 < 0.25 * tol[i] ** 2:
                     self.wheel_ratio[j].update(self.wheel_ratio[j].value * u[j] / ref if ref > 0 else 1.0)
+        # a wheel whose residual already exceeds half its tolerance does not vote on the rotation
+        calm_w = [ok[i] and (resid[i] is None or abs(resid[i]) < 0.5 * tol[i]) for i in WHEELS]  # type: ignore
         v_lp = self._v_lp.update(v) if v_hat is not None else self._v_lp.value
         pred[VS] = self.speedo_factor.value * v_lp if usable else None
         if moving and valid[VS] and len(usable) >= 2:
@@ -370,9 +373,9 @@ class Plausibility:
             est[YAW] = x[YAW]
             sd[YAW] = 0.3 * _DEG + 0.5 * self._resolution(YAW) + cfg.lag_yaw_s * env
         if moving:
-            if grip and ok[RL] and ok[RR] and self.rear.n * dt >= cfg.warmup_s:
+            if grip and calm_w[2] and calm_w[3] and self.rear.n * dt >= cfg.warmup_s:
                 est[RL] = (x[RR] - x[RL] - self.rear.theta[1] * v) / self.rear.theta[0]
-            if grip and ok[FL] and ok[FR] and self.front.n * dt >= cfg.warmup_s:
+            if grip and calm_w[0] and calm_w[1] and self.front.n * dt >= cfg.warmup_s:
                 est[FL] = (x[FR] - x[FL] - self.front.theta[1] * v) / (self.front.theta[0] * cos_front)
             if valid[AY] and self.moving_s >= cfg.warmup_s:
                 est[AY] = (x[AY] - self.ay_offset.value) / v
@@ -486,8 +489,9 @@ class Plausibility:
             if p is not None:
                 c.pred_lo = min(c.pred_lo, p)
                 c.pred_hi = max(c.pred_hi, p)
-            stuck = (t - c.changed_t >= self.stuck_hold_s[i] and c.pred_hi - c.pred_lo > 2.0 * ti
-                     and c.pred_hi - c.pred_lo > 3.0 * self._resolution(i))
+            span = c.pred_hi - c.pred_lo
+            stuck = (t - c.changed_t >= self.stuck_hold_s[i] and span > cfg.stuck_span_tol * ti
+                     and span > 3.0 * self._resolution(i))
             if not c.flagged:
                 if abs(c.resid) > ti:
                     c.over_s += dt

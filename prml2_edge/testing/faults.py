@@ -27,6 +27,8 @@ from prml2_edge.can.checksum import checksum_function
 
 KINDS = ("drop_message", "freeze_signal", "checksum", "duplicate", "time_shift", "error_frames", "random_burst",
          "bus_silent", "out_of_range")
+# plausible lies (the reliability benchmark): values a healthy-looking sensor or a second sender could send
+LIES = ("offset", "scale", "stuck", "intruder", "gnss_walk")
 
 
 @dataclass(frozen=True)
@@ -40,6 +42,14 @@ class Fault:
     ``error_frames`` (``count`` error frames at ``t_start_s``), ``random_burst`` (``count``
     random frames over the interval), ``bus_silent`` (every frame removed), ``out_of_range``
     (``signal`` of ``message`` set to ``value``, physical DBC units).
+
+    Plausible lies (:data:`LIES`): ``offset`` (``signal`` of ``message`` plus ``value``, physical DBC
+    units), ``scale`` (times ``value``), ``stuck`` (held at the value of its first frame in the
+    interval; a dropout to zero is ``freeze_signal`` with ``value`` 0), ``intruder`` (a second
+    sender: every frame of ``message`` is followed, half a period later, by the frame of that message
+    sent ``value`` seconds earlier, replayed as it was: its own counter and checksum), ``gnss_walk``
+    (the ``GNSS_FIX`` position walks away linearly to ``value`` metres at ``t_end_s`` in the direction
+    ``count`` degrees clockwise from north, and stays there).
     """
 
     kind: str
@@ -51,8 +61,8 @@ class Fault:
     count: int = 0
 
     def __post_init__(self) -> None:
-        if self.kind not in KINDS:
-            raise ValueError(f"unknown fault kind {self.kind!r}; known: {', '.join(KINDS)}")
+        if self.kind not in KINDS + LIES:
+            raise ValueError(f"unknown fault kind {self.kind!r}; known: {', '.join(KINDS + LIES)}")
         if not self.t_end_s >= self.t_start_s:
             raise ValueError(f"fault {self.kind}: t_end_s {self.t_end_s} < t_start_s {self.t_start_s}")
 
@@ -84,10 +94,15 @@ class _Recoder:
         self.db = db
         self.crc = checksum_function("prml2_crc8")
 
-    def set(self, msg: can.Message, signal: str, value: float) -> can.Message:
+    def get(self, msg: can.Message, signal: str) -> float:
+        m = self.db.get_message_by_frame_id(msg.arbitration_id)
+        return float(m.decode(bytes(msg.data), decode_choices=False)[signal])
+
+    def set(self, msg: can.Message, signal: str, value: float, **more: float) -> can.Message:
         m = self.db.get_message_by_frame_id(msg.arbitration_id)
         values = m.decode(bytes(msg.data), decode_choices=False)
         values[signal] = value
+        values.update(more)
         data = bytearray(m.encode(values, scaling=True, strict=False))
         if any(s.name == "CHECKSUM" for s in m.signals):
             data[0] = self.crc(m.frame_id, bytes(data))
@@ -151,6 +166,10 @@ def inject(frames: Iterable[can.Message], faults: list[Fault], db: cantools.data
                              if f.kind == "error_frames" else random_frame(rng, t_j, known_ids))
             counts._add(counts.added, f.kind, f.count)
     queue.sort(key=lambda m: m.timestamp, reverse=True)  # pop() takes the oldest
+    stuck_at: dict[int, float] = {}  # fault index -> the value a stuck signal holds
+    recorded: dict[int, list[can.Message]] = {}  # intruder faults: frames of their message, to replay
+    period: dict[int, float] = {}
+    last_t: dict[int, float] = {}
     for msg in frames:
         t = float(msg.timestamp)
         out: list[can.Message] = []
@@ -178,10 +197,38 @@ def inject(frames: Iterable[can.Message], faults: list[Fault], db: cantools.data
                 counts._add(counts.edited, f.kind)
             elif f.kind == "duplicate":
                 copies = 2
+            elif f.kind in ("offset", "scale", "stuck") and msg.arbitration_id == ids.get(f.message):
+                fi = faults.index(f)
+                now = recoder.get(msg, f.signal)  # type: ignore[arg-type]
+                value = now + f.value if f.kind == "offset" else now * f.value if f.kind == "scale" else \
+                    stuck_at.setdefault(fi, now)
+                msg = recoder.set(msg, f.signal, value)  # type: ignore[arg-type]
+                counts._add(counts.edited, f.kind)
+            elif f.kind == "gnss_walk" and msg.arbitration_id == ids.get("GNSS_FIX"):
+                frac = min((t - f.t_start_s) / max(f.t_end_s - f.t_start_s, 1e-9), 1.0)
+                d = f.value * frac
+                az = np.radians(f.count)
+                x, y = recoder.get(msg, "GNSS_POS_X"), recoder.get(msg, "GNSS_POS_Y")
+                msg = recoder.set(msg, "GNSS_POS_X", x + d * np.sin(az), GNSS_POS_Y=y + d * np.cos(az))
+                counts._add(counts.edited, f.kind)
         if keep:
             out.extend([msg] * copies)
             if copies > 1:
                 counts._add(counts.added, "duplicate", copies - 1)
+        for fi, f in enumerate(faults):  # a second sender replaying this message's frames from f.value s ago
+            if f.kind != "intruder" or msg.arbitration_id != ids.get(f.message):
+                continue
+            rec = recorded.setdefault(fi, [])
+            rec.append(msg)
+            if msg.arbitration_id in last_t:
+                period[fi] = t - last_t[msg.arbitration_id]
+            last_t[msg.arbitration_id] = t
+            replay = None
+            while rec and rec[0].timestamp <= t - f.value:
+                replay = rec.pop(0)  # the newest frame at least f.value s old, once each
+            if f.active(t) and replay is not None:
+                out.append(_copy(replay, timestamp=t + 0.5 * period.get(fi, 0.0)))
+                counts._add(counts.added, f.kind)
         counts.frames_out += len(out)
         yield from out
 
