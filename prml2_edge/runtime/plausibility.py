@@ -98,7 +98,8 @@ class PlausibilityConfig:
     brake_tol_low_mps2: float = 1.8  # deceleration the pressure does not explain (coasting, engine braking)
     brake_tol_rel: float = 0.3
     brake_min_bar: float = 3.0  # pressure above idle that counts as braking (learning the gain)
-    wheel_yaw_max_accel_mps2: float = 1.5  # the wheel pairs estimate the rotation below this |a_x|
+    wheel_yaw_max_accel_mps2: float = 2.5  # the wheel pairs estimate the rotation below this |a_x| ...
+    wheel_yaw_slip: float = 0.001  # ... with an uncertainty of this times |a_x a_y| v / track (left/right slip)
     ay_check_max_mps2: float = 6.0  # rotation relations are linear below this lateral acceleration
     stuck_hold_s: float = 0.5
     stuck_span_tol: float = 0.75  # ... while the prediction moved by this many tolerances (and 3 resolution steps)
@@ -113,6 +114,7 @@ class _Rls:
         self.theta = list(theta)
         n = len(theta)
         self.P = [[(prior_std[i] ** 2 if i == j else 0.0) for j in range(n)] for i in range(n)]
+        self.max_var = [sd * sd for sd in prior_std]
         self.forget = forget
         self.n = 0
 
@@ -131,6 +133,14 @@ class _Rls:
         for i in range(n):
             for j in range(n):
                 P[i][j] = (P[i][j] - k[i] * Pphi[j]) / lam
+        # no wind-up: a parameter the data do not excite (the track on a straight) keeps at most its prior
+        # uncertainty, so one odd sample cannot move it far
+        for i in range(n):
+            if P[i][i] > self.max_var[i]:
+                f = math.sqrt(self.max_var[i] / P[i][i])
+                for j in range(n):
+                    P[i][j] *= f
+                    P[j][i] *= f
         self.n += 1
 
     def predict(self, phi: list[float]) -> float:
@@ -233,10 +243,12 @@ class Plausibility:
         self.brake_gain = _Rls([0.1, 0.3], [0.1, 0.5], forget)  # decel = gain * (p - idle) + coast
         self._v_lp = _Ema(dt / cfg.speedo_lag_s)
         self._v_hist: list[float] = []
+        self._v_lp_set = False
         self._decel = 0.0
         self._omega = 0.0
         self._omega_rate = _Ema(dt / 0.1)
         self._rate_env = 0.0
+        self._w_ng, self._w_ng_set = 0.0, False
         self._rate_decay = math.exp(-dt / (2.0 * cfg.smooth_s))
         self._est_lp = {RL: _Ema(dt / cfg.inertial_lag_s), FL: _Ema(dt / cfg.inertial_lag_s),
                         SW: _Ema(dt / cfg.inertial_lag_s)}
@@ -251,6 +263,19 @@ class Plausibility:
         self._seen = [False] * N  # a valid value has arrived
         self.untrusted: dict[int, str] = {}  # signals taken out because their message is under attack
 
+    def _restart(self) -> None:
+        """After a gap in the stream: the transient state starts again (learned relations and flags stay)."""
+        self._v_hist.clear()
+        self._v_lp_set = False
+        for s_ in self._est_seen:
+            self._est_seen[s_] = False
+        self._rate_env = 0.0
+        self._w_ng_set = False
+        for c in self.checks:
+            c.resid = c.over_s = 0.0
+            c.changed_t = -math.inf
+            c.pred_lo, c.pred_hi = math.inf, -math.inf
+
     # ---- one row --------------------------------------------------------------------------------------
 
     def check(self, row: AssembledRow, untrusted: dict[int, str] | None = None) -> AssembledRow:
@@ -262,6 +287,8 @@ class Plausibility:
             return row
         x = row.values.tolist()
         valid = row.valid.tolist()
+        if row.discontinuity:
+            self._restart()
         if untrusted:
             for i, why in untrusted.items():
                 valid[i] = False
@@ -344,6 +371,10 @@ class Plausibility:
                     self.wheel_ratio[j].update(self.wheel_ratio[j].value * u[j] / ref if ref > 0 else 1.0)
         # a wheel whose residual already exceeds half its tolerance does not vote on the rotation
         calm_w = [ok[i] and (resid[i] is None or abs(resid[i]) < 0.5 * tol[i]) for i in WHEELS]  # type: ignore
+        if v_hat is None:
+            self._v_lp_set = False  # the instrument's filter starts again when the wheels are back
+        elif not self._v_lp_set:
+            self._v_lp.value, self._v_lp_set = v, True
         v_lp = self._v_lp.update(v) if v_hat is not None else self._v_lp.value
         pred[VS] = self.speedo_factor.value * v_lp if usable else None
         if moving and valid[VS] and len(usable) >= 2:
@@ -391,15 +422,22 @@ class Plausibility:
                     lp.value = est[s_]
                 est[s_] = lp.update(est[s_])
                 if s_ in (RL, FL):
-                    sd[s_] = (0.015 + 0.001 * v) / 1.56 + 0.02 * abs(est[s_]) + cfg.lag_yaw_s * env
+                    a_lat = abs(x[AY]) if valid[AY] else abs(v * w)
+                    sd[s_] = ((0.015 + 0.0005 * v + cfg.wheel_yaw_slip * abs(decel) * a_lat * v) / 1.56
+                              + 0.02 * abs(est[s_]) + cfg.lag_yaw_s * env)
             self._est_seen[s_] = s_ in est
         sources_ok = {s: e for s, e in est.items() if s in (RL, FL) or ok[s]}
         if sources_ok:
             omega = _weighted_median([(e, sd[k]) for k, e in sources_ok.items()])[0]
         else:
             omega = 0.0 if v_hat is not None and v < 1.0 else w
-        # yaw acceleration envelope: peak-held, decaying over the residuals' memory
-        rate = max(abs(self._omega_rate.update((omega - w) / dt)), self._rate_env * self._rate_decay)
+        # yaw acceleration envelope, peak-held and decaying over the residuals' memory, from the estimates other
+        # than the gyro (an offset jump of the gyro must not widen its own tolerance)
+        not_gyro = [(e, sd[k]) for k, e in sources_ok.items() if k != YAW]
+        w_ng = _weighted_median(not_gyro)[0] if not_gyro else omega
+        rate = max(abs(self._omega_rate.update((w_ng - self._w_ng) / dt)) if self._w_ng_set else 0.0,
+                   self._rate_env * self._rate_decay)
+        self._w_ng, self._w_ng_set = w_ng, bool(not_gyro)
         self._rate_env = rate
         for s in (YAW, AY, SW):
             others = [(e, sd[k]) for k, e in sources_ok.items() if k != s]
@@ -429,8 +467,12 @@ class Plausibility:
             resid[s] = x[s] - pred[s]  # type: ignore[operator]
         self._omega = omega
         self.last_estimates = sources_ok
+        self.last_tol = tol
         # learning the rotation relations from the gyro, while everything involved agrees
-        calm = moving and ok[YAW] and (not valid[AY] or abs(x[AY]) < cfg.ay_check_max_mps2)
+        # the gyro teaches the other relations only while it agrees with them (a fault not yet flagged must not
+        # pull them along)
+        gyro_calm = resid[YAW] is None or abs(self.checks[YAW].resid) < 0.5 * tol[YAW]
+        calm = moving and ok[YAW] and gyro_calm and (not valid[AY] or abs(x[AY]) < cfg.ay_check_max_mps2)
         if calm:
             wy = x[YAW]
             if grip and ok[RL] and ok[RR]:
@@ -518,9 +560,8 @@ class Plausibility:
         return pred, newly
 
     def _resolution(self, i: int) -> float:
-        """Smallest change of signal ``i`` seen so far; the coarsest common step until it has changed."""
-        res = self.checks[i].resolution
-        return res if math.isfinite(res) else schema.SIGNALS[i].revsted_step
+        """Smallest change of signal ``i`` seen so far, at most the coarsest common step (the reference car's)."""
+        return min(self.checks[i].resolution, schema.SIGNALS[i].revsted_step)
 
     def _reason(self, i: int, x: float, p: float | None, c: _Check, stuck: bool, t: float) -> str:
         unit, k = SIGNAL_UNITS[i]

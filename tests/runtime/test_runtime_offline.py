@@ -2,7 +2,8 @@
 
 A 40 s simulated drive (GNSS for the first 4 s) is encoded with the project DBC, rewritten with
 faults (checksum errors, a dropped message, duplicated frames, error frames, a frozen yaw rate, a
-clock jump back, a 6 s bus silence that re-anchors the grid), written as a candump log and replayed
+clock jump back, a 6 s bus silence that re-anchors the grid, a yaw-rate offset, a second sender
+replaying wheel-speed frames, a wheel reading 20 % high), written as a candump log and replayed
 twice with the shipped model: through the virtual bus frame by frame (``run_source``) and on the
 offline schedule (``run_offline``, worker processes and in-thread). Poses, statuses, the summary and
 the frame accounting must agree; the trajectories to 1e-6 m (they agree bitwise: same session
@@ -38,6 +39,10 @@ FAULTS = [
     Fault("freeze_signal", 14.0, 17.0, message="ESP_YAW_LAT", signal="YAW_RATE", value=0.0),  # stuck sensor
     Fault("time_shift", 18.0, 20.0, value=-0.5),  # logger clock jumps back, then forward
     Fault("bus_silent", 24.0, 30.5),  # longer than the assembler's max gap: grid re-anchored, window restarted
+    # plausible lies: the cross-checks flag them and substitute, the injection monitor rejects the second sender
+    Fault("offset", 32.0, 35.0, message="ESP_YAW_LAT", signal="YAW_RATE", value=4.0),
+    Fault("intruder", 34.0, 37.0, message="WHEEL_SPEEDS_REAR", value=20.0),
+    Fault("scale", 36.0, 39.0, message="WHEEL_SPEEDS_FRONT", signal="WHEEL_SPEED_FL", value=1.2),
 ]
 
 
@@ -89,6 +94,11 @@ def test_offline_replay_of_a_faulty_log_gives_the_streaming_poses(faulty_log, st
     assert fr["rejected_by_reason"].get("checksum") and fr["rejected_by_reason"].get("counter")
     assert fr["clock_jumps"] == 1 and fr["error_frames"] == 50 and ps.assembler.resyncs == 1
     assert sum(o.degraded for o in outs_s) > 100 and ps.stats.signal_frozen[2] == 1
+    summary = ps.summary()
+    assert summary["injection_suspected"]["WHEEL_SPEEDS_REAR"]["intruder_frames_rejected"] > 0
+    assert fr["rejected_by_reason"].get("intruder")
+    assert {"yaw_rate_radps", "wheel_speed_fl_mps"} <= set(summary["plausibility"]["first_flag"])
+    assert any(o.substituted is not None and o.substituted[2] and o.model_used for o in outs_s)
     assert result.problem is None and result.frames == fr["received"] and result.rows == len(outs_s)
     assert result.inferences == ps.localizer.n_inferences
     # same rows, same statuses, same model use, trajectories within 1e-6 m (in fact bitwise)
