@@ -102,6 +102,7 @@ class PlausibilityConfig:
     wheel_yaw_slip: float = 0.001  # ... with an uncertainty of this times |a_x a_y| v / track (left/right slip)
     ay_check_max_mps2: float = 6.0  # rotation relations are linear below this lateral acceleration
     stuck_hold_s: float = 0.5
+    dropout_tol: float = 4.0  # a signal reading 0 this many tolerances from its prediction is flagged at once
     stuck_span_tol: float = 0.75  # ... while the prediction moved by this many tolerances (and 3 resolution steps)
     substitute_stale: bool = True  # a stale signal (message stopped) gets the others' prediction too
     max_substituted: int = 3  # at most this many signals replaced at once (a whole ESP message is two)
@@ -539,7 +540,10 @@ class Plausibility:
                     c.over_s += dt
                 else:
                     c.over_s = 0.0
-                if c.over_s >= cfg.confirm_s or stuck:
+                # a dropout (exactly 0 where the others say far more) is flagged at once: every row it stays in
+                # the window and the filter costs heading
+                dropout = xi == 0.0 and abs(r) > cfg.dropout_tol * ti
+                if c.over_s >= cfg.confirm_s or stuck or dropout:
                     c.flagged = True
                     c.since_t = t
                     c.under_s = 0.0
