@@ -294,8 +294,7 @@ class PoseFilter:
         m2 = self._mahalanobis(pos)
         ekf = self.ekf
         trusted, correction = self.gnss_check.check(t_s, (float(pos[0]), float(pos[1])),
-                                                    (float(x[EkfState.POS][0]), float(x[EkfState.POS][1])),
-                                                    m2 <= cfg.gnss_gate_chi2)
+                                                    (float(x[EkfState.POS][0]), float(x[EkfState.POS][1])))
         if correction is not None:
             # what was fused since the baseline's start was the spoofer's: back to the odometry's position
             shift = correction - ekf.x[EkfState.POS]  # type: ignore[union-attr]

@@ -12,9 +12,10 @@ of the fixes in any direction shows up as a displacement the odometry does not h
 When the discrepancy exceeds ``tol_m + tol_per_m * distance`` the fixes are *suspect*: none is
 fused (the pose dead-reckons and its status says why), and the filter's position is moved back to
 where the odometry puts it from the start of the baseline (what it fused since then was the
-spoofer's). The suspicion ends when :attr:`~GnssCheckConfig.clear_fixes` consecutive fixes agree
-with the odometry over a fresh baseline *and* lie within the filter's innovation gate: real GNSS that
-returns after a spoofer stops is fused again; a spoofer that keeps its false position is not.
+spoofer's). While suspect, each fix is compared with the odometry's track from that last trusted
+position (same tolerance, over the distance since); the suspicion ends when
+:attr:`~GnssCheckConfig.clear_fixes` consecutive fixes agree with it: real GNSS that returns after a
+spoofer stops is fused again; a spoofer that keeps its false position is not.
 """
 
 from __future__ import annotations
@@ -64,6 +65,7 @@ class GnssCheck:
         self.suspect = False
         self.reason = ""
         self._agree = 0
+        self._anchor: tuple | None = None  # (t, odometry, position) the suspect fixes are judged from
         self.last_discrepancy_m = 0.0
 
     def step(self, dt: float, yaw_rate: float | None, wheel_speed: float | None, filter_psi: float) -> None:
@@ -83,8 +85,8 @@ class GnssCheck:
             self.odo[0] += wheel_speed * math.cos(self.psi) * dt
             self.odo[1] += wheel_speed * math.sin(self.psi) * dt
 
-    def check(self, t: float, fix_xy: tuple[float, float], pose_xy: tuple[float, float],
-              in_gate: bool) -> tuple[bool, np.ndarray | None]:
+    def check(self, t: float, fix_xy: tuple[float, float], pose_xy: tuple[float, float]
+              ) -> tuple[bool, np.ndarray | None]:
         """One fix: ``(trusted, correction)``. ``correction`` (2,) is where to move the filter's position when a
         suspicion starts (the odometry's position from the baseline's start), else None."""
         cfg = self.config
@@ -97,8 +99,28 @@ class GnssCheck:
         entry = _Entry(t, fix_xy, (self.odo[0], self.odo[1]), pose_xy)
         while len(hist) > 1 and t - hist[1].t >= cfg.baseline_s:
             hist.popleft()
-        consistent = True
         correction = None
+        if self.suspect:
+            # judged against the odometry's track from the last trusted position, not against a fresh baseline of
+            # the suspect fixes (a walk seen over a few seconds looks like driving)
+            t_a, odo_a, pos_a = self._anchor  # type: ignore[misc]
+            o = (self.odo[0] - odo_a[0], self.odo[1] - odo_a[1])
+            pred = (pos_a[0] + o[0], pos_a[1] + o[1])
+            disc = math.hypot(fix_xy[0] - pred[0], fix_xy[1] - pred[1])
+            self.last_discrepancy_m = disc
+            if disc <= cfg.tol_m + cfg.tol_per_m * math.hypot(*o):
+                self._agree += 1
+                if self._agree >= cfg.clear_fixes:
+                    self.suspect = False
+                    self.reason = ""
+                    hist.clear()
+            else:
+                self._agree = 0
+            if self.suspect:
+                self.fixes_refused += 1
+                return False, None
+            hist.append(entry)
+            return True, None
         if hist and t - hist[0].t >= cfg.min_baseline_s:
             old = hist[0]
             g = (fix_xy[0] - old.fix[0], fix_xy[1] - old.fix[1])
@@ -107,33 +129,23 @@ class GnssCheck:
             disc = math.hypot(g[0] - o[0], g[1] - o[1])
             self.last_discrepancy_m = disc
             tol = cfg.tol_m + cfg.tol_per_m * dist
-            consistent = disc <= tol
-            if not consistent and not self.suspect:
+            if disc > tol:
                 self.suspect = True
                 self.episodes += 1
                 self._agree = 0
+                self.fixes_refused += 1
                 self.reason = (f"GNSS suspect: the fixes moved {disc:.1f} m away from the wheels' and gyro's track "
                                f"over {t - old.t:.1f} s (allowed {tol:.1f} m); not fused while they disagree")
                 if self.first_reason is None:
                     self.first_reason = self.reason
                 if recent:
                     correction = np.array([old.pose[0] + o[0], old.pose[1] + o[1]])
-        if self.suspect:
-            if consistent and in_gate:
-                self._agree += 1
-                if self._agree >= cfg.clear_fixes:
-                    self.suspect = False
-                    self.reason = ""
-            else:
-                self._agree = 0
-                if not consistent:
-                    hist.clear()  # judge the next fixes on a fresh baseline, from the odometry's side
-        if self.suspect:
-            self.fixes_refused += 1
-            # a suspect fix never becomes a baseline start for a trusted one: keep the odometry's own track
-            entry = _Entry(t, fix_xy, entry.odo, pose_xy)
+                    self._anchor = (old.t, old.odo, old.pose)
+                else:
+                    self._anchor = (t, (self.odo[0], self.odo[1]), pose_xy)
+                return False, correction
         hist.append(entry)
-        return not self.suspect, correction
+        return True, None
 
     def summary(self) -> dict:
         return {"episodes": self.episodes, "fixes_refused": self.fixes_refused, "suspect_now": self.suspect,

@@ -80,13 +80,13 @@ class PlausibilityConfig:
     speedo_tol_mps: float = 0.6
     speedo_tol_rel: float = 0.05
     speedo_lag_s: float = 0.25  # the instrument's low-pass
-    yaw_tol_radps: float = 0.6 * _DEG
-    yaw_tol_rel: float = 0.05
+    yaw_tol_radps: float = 0.4 * _DEG
+    yaw_tol_rel: float = 0.04
     ay_tol_mps2: float = 0.45
     ay_tol_rel: float = 0.15
     steer_tol_rad: float = 6.0 * _DEG
     steer_tol_rel: float = 0.25
-    res_gain: float = 0.6  # tolerance per resolution step of the signal (quantisation)
+    res_gain: float = 0.5  # tolerance per resolution step of the signal (quantisation)
     # sensors lag each other (yaw-rate and a_y filters, the car's yaw response behind the steering): tolerance
     # per unit of the yaw acceleration, as a time [s]
     lag_yaw_s: float = 0.02  # the yaw-rate sensor and the wheels
@@ -404,15 +404,15 @@ class Plausibility:
         if valid[YAW]:
             est[YAW] = x[YAW]
             sd[YAW] = 0.3 * _DEG + 0.5 * self._resolution(YAW) + cfg.lag_yaw_s * env
-        if moving:
+        if v >= 1.0:  # (the checks need `moving`; below it the estimates still feed the substitutes)
             if grip and calm_w[2] and calm_w[3] and self.rear.n * dt >= cfg.warmup_s:
                 est[RL] = (x[RR] - x[RL] - self.rear.theta[1] * v) / self.rear.theta[0]
             if grip and calm_w[0] and calm_w[1] and self.front.n * dt >= cfg.warmup_s:
                 est[FL] = (x[FR] - x[FL] - self.front.theta[1] * v) / (self.front.theta[0] * cos_front)
-            if valid[AY] and self.moving_s >= cfg.warmup_s:
+            if valid[AY] and self.moving_s >= cfg.warmup_s and v >= 3.0:
                 est[AY] = (x[AY] - self.ay_offset.value) / v
                 sd[AY] = (0.2 + 0.1 * abs(x[AY]) + 0.5 * self._resolution(AY)) / v + cfg.lead_ay_s * env
-            if valid[SW] and self.turning_s >= cfg.warmup_s:
+            if valid[SW] and self.turning_s >= cfg.warmup_s and v >= 3.0:
                 g = self.steer.theta[1] / v + self.steer.theta[2] * v
                 if g > 1.0:
                     est[SW] = (x[SW] - self.steer.theta[0]) / g
@@ -424,7 +424,7 @@ class Plausibility:
                 est[s_] = lp.update(est[s_])
                 if s_ in (RL, FL):
                     a_lat = abs(x[AY]) if valid[AY] else abs(v * w)
-                    sd[s_] = ((0.015 + 0.0005 * v + cfg.wheel_yaw_slip * abs(decel) * a_lat * v) / 1.56
+                    sd[s_] = ((0.005 + 0.0003 * v + cfg.wheel_yaw_slip * abs(decel) * a_lat * v) / 1.56
                               + 0.02 * abs(est[s_]) + cfg.lag_yaw_s * env)
             self._est_seen[s_] = s_ in est
         sources_ok = {s: e for s, e in est.items() if s in (RL, FL) or ok[s]}
