@@ -233,19 +233,22 @@ def inject(frames: Iterable[can.Message], faults: list[Fault], db: cantools.data
         yield from out
 
 
-def fault_schedule(duration_s: float, period_s: float = 60.0, start_s: float = 20.0) -> list[Fault]:
-    """A rotating schedule over ``duration_s`` [s]: one fault every ``period_s``, cycling through :data:`KINDS`.
+def fault_schedule(duration_s: float, period_s: float = 60.0, start_s: float = 20.0, lies: bool = False) -> list[Fault]:
+    """A rotating schedule over ``duration_s`` [s]: one fault every ``period_s``, cycling through :data:`KINDS`
+    (and, with ``lies``, plausible lies too).
 
     Used by the soak benchmark: wheel speeds absent 2 s, yaw rate frozen 3 s while the car
     turns, front wheel checksums broken 1 s, every frame duplicated 1 s, timestamps 0.5 s
     backwards for 2 s, 50 error frames, 500 random frames over 0.5 s, bus silent 1 s, yaw rate
-    out of range 1 s.
+    out of range 1 s; with ``lies``: yaw rate +3 deg/s for 5 s, steering stuck 5 s, front-left wheel
+    x1.1 for 5 s, a second sender replaying the rear wheel speeds of 20 s before for 3 s.
     """
+    kinds = KINDS + (("offset", "stuck", "scale", "intruder") if lies else ())
     plan = []
     t = start_s
     i = 0
     while t + 5.0 < duration_s:
-        kind = KINDS[i % len(KINDS)]
+        kind = kinds[i % len(kinds)]
         plan.append({
             "drop_message": Fault("drop_message", t, t + 2.0, message="WHEEL_SPEEDS_FRONT"),
             "freeze_signal": Fault("freeze_signal", t, t + 3.0, message="ESP_YAW_LAT", signal="YAW_RATE", value=5.0),
@@ -256,6 +259,10 @@ def fault_schedule(duration_s: float, period_s: float = 60.0, start_s: float = 2
             "random_burst": Fault("random_burst", t, t + 0.5, count=500),
             "bus_silent": Fault("bus_silent", t, t + 1.0),
             "out_of_range": Fault("out_of_range", t, t + 1.0, message="ESP_YAW_LAT", signal="YAW_RATE", value=200.0),
+            "offset": Fault("offset", t, t + 5.0, message="ESP_YAW_LAT", signal="YAW_RATE", value=3.0),
+            "stuck": Fault("stuck", t, t + 5.0, message="STEERING_ANGLE", signal="STEERING_WHEEL_ANGLE"),
+            "scale": Fault("scale", t, t + 5.0, message="WHEEL_SPEEDS_FRONT", signal="WHEEL_SPEED_FL", value=1.1),
+            "intruder": Fault("intruder", t, t + 3.0, message="WHEEL_SPEEDS_REAR", value=20.0),
         }[kind])
         t += period_s
         i += 1

@@ -1,5 +1,5 @@
-"""Hostile input: 100 000 fuzzed frames and hypothesis frame streams never raise out of the pipeline;
-the EKF covariance stays symmetric positive definite under random valid inputs.
+"""Hostile input: 20 000 fuzzed frames (10^6 in ``benchmarks/fuzz.py``) and hypothesis frame streams never
+raise out of the pipeline;the EKF covariance stays symmetric positive definite under random valid inputs.
 
 CAN has no authentication: anything on the bus can send any frame, with any ID, length and
 payload; logs add broken timestamps. Frames go straight into ``Pipeline.step`` (the replay path
@@ -24,10 +24,9 @@ from prml2_edge.runtime.inference import OnnxModel
 from prml2_edge.runtime.initial_pose import InitialPose
 from prml2_edge.runtime.pipeline import Pipeline
 from prml2_edge.runtime.status import PoseStatus
-from prml2_edge.testing.faults import random_frame
+from prml2_edge.testing.fuzz import KNOWN_IDS, fuzz_stream
 
-N_FUZZ = 100_000
-KNOWN_IDS = [0xA0, 0xA1, 0xC2, 0x130, 0x140, 0x158, 0x610]
+N_FUZZ = 20_000
 
 
 @pytest.fixture(scope="module")
@@ -37,45 +36,13 @@ def genuine(tmp_path_factory):
     return list(can.LogReader(str(root / "d.log"))), OnnxModel(make_kinematic_model(root / "k.onnx"))
 
 
-def _mutate(rng: np.random.Generator, msg: can.Message, t_s: float) -> can.Message:
-    """A genuine frame with flipped bits, a changed length or a hostile timestamp."""
-    data = bytearray(msg.data)
-    r = rng.random()
-    if r < 0.5 and data:
-        for _ in range(int(rng.integers(1, 4))):
-            i = int(rng.integers(0, len(data)))
-            data[i] ^= 1 << int(rng.integers(0, 8))
-    elif r < 0.7:
-        data = data[: int(rng.integers(0, 9))] if rng.random() < 0.5 else data + bytes(int(rng.integers(1, 57)))
-    elif r < 0.8:
-        t_s = float(rng.choice([math.nan, math.inf, -math.inf, -1e9, 1e12, 0.0, t_s - 3.0, t_s + 7.0, t_s - 0.3,
-                                t_s + 0.1]))
-    fd = len(data) > 8
-    return can.Message(timestamp=t_s, arbitration_id=msg.arbitration_id, is_extended_id=False, data=bytes(data),
-                       is_fd=fd)
-
-
-def test_100k_fuzzed_frames_never_raise_and_are_all_accounted_for(genuine):
+def test_fuzzed_frames_never_raise_and_are_all_accounted_for(genuine):
+    # 20 000 here; benchmarks/fuzz.py runs 10^6 through the same stream
     frames, model = genuine
-    rng = np.random.default_rng(2024)
     pipeline = Pipeline.build(model=model, initial_pose=InitialPose(0.0, 0.0, 0.0))
     outs = []
-    n = 0
-    t_s = 0.0
-    kinds = rng.random(N_FUZZ)
-    while n < N_FUZZ:
-        msg = frames[n % len(frames)]
-        t_s = msg.timestamp + 6.0 * (n // len(frames))  # the drive again and again, time moving on
-        kind = kinds[n]
-        if kind < 0.55:
-            fuzzed = can.Message(timestamp=t_s, arbitration_id=msg.arbitration_id, is_extended_id=False,
-                                 data=msg.data)
-        elif kind < 0.8:
-            fuzzed = _mutate(rng, msg, t_s)
-        else:
-            fuzzed = random_frame(rng, t_s, KNOWN_IDS)
+    for fuzzed in fuzz_stream(frames, N_FUZZ, seed=2024):
         outs += pipeline.step(fuzzed)  # an exception here fails the test
-        n += 1
     outs += pipeline.finish()
     st_ = pipeline.stats
     assert st_.received == N_FUZZ and st_.balanced()
@@ -84,7 +51,7 @@ def test_100k_fuzzed_frames_never_raise_and_are_all_accounted_for(genuine):
     assert {"dlc", "checksum", "counter", "timestamp"} <= set(reasons), reasons
     # lone old outlier timestamps are refused; a far-future one re-anchors and the clock is re-based back
     assert st_.clock_jumps > 0 and pipeline.assembler.resyncs > 0
-    assert len(outs) > 1000
+    assert len(outs) > 200
     assert all(np.isfinite(o.x).all() for o in outs if o.status is not PoseStatus.INITIALISING)
     assert pipeline.summary()["frames"]["balanced"]
 
