@@ -37,7 +37,7 @@ class PoseStatus(IntEnum):
     INITIALISING = 0  # no initial pose yet (waiting for a GNSS fix)
     GNSS_AIDED = 1  # GNSS fixes are being fused
     DEAD_RECKONING = 2  # model-driven dead reckoning (no GNSS, or GNSS outage)
-    DEGRADED = 3  # onboard inputs invalid or stale: predict-only
+    DEGRADED = 3  # a signal is out (stale, invalid or flagged by the cross-checks); substituted, or predict-only
     PREDICT_ONLY = 4  # no model output yet (window filling) or model output invalid
 
 
