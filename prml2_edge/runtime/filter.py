@@ -126,8 +126,11 @@ class PoseFilter:
             cues = self._cues(values, valid)
             standstill = still and self._zero_velocity()
             self._odometry(values, valid)
-        self._check_odometry(values, valid)
+        pos = self.ekf.x[EkfState.POS]
+        self.gnss_check.step(float(pos[0]), float(pos[1]))
         gnss_fused = fix is not None and self._fuse(fix, t_s)
+        pos = self.ekf.x[EkfState.POS]
+        self.gnss_check.settle(float(pos[0]), float(pos[1]))
         if gnss_fused and self.calibrated:
             self._scale_from_gnss(fix, t_s)
         return FilterStep(ekf_status, model_used, gnss_fused, cues, standstill)
@@ -212,19 +215,6 @@ class PoseFilter:
                                       cfg.wheel_cue_std_mps ** 2)
         return status is StepStatus.SUCCESS
 
-    def _check_odometry(self, values: np.ndarray, valid: np.ndarray) -> None:
-        """The GNSS check's own track: CAN yaw rate and rear wheels, calibrated by the filter's states (its own
-        estimates where a signal is out)."""
-        ekf = self.ekf
-        x = ekf.x  # type: ignore[union-attr]
-        cal = ekf.cal if ekf.calibration else None  # type: ignore[union-attr]
-        yaw = float(values[_YAW_RATE]) - (cal[0] if cal is not None else 0.0) if valid[_YAW_RATE] else float(x[_OMEGA])
-        if valid[_REAR].all():
-            wheel = float(np.mean(values[_REAR])) / (1.0 + (cal[1] if cal is not None else 0.0))
-        else:
-            wheel = float(x[_VX])
-        self.gnss_check.step(self.dt_s, yaw, wheel, float(x[_YAW]))
-
     def _odometry(self, values: np.ndarray, valid: np.ndarray) -> None:
         """Integrate the rear-axle wheel speed along the filter's heading; a gap or slow driving restarts it."""
         if self._odo_anchor is None:
@@ -294,12 +284,12 @@ class PoseFilter:
         m2 = self._mahalanobis(pos)
         ekf = self.ekf
         trusted, correction = self.gnss_check.check(t_s, (float(pos[0]), float(pos[1])),
-                                                    (float(x[EkfState.POS][0]), float(x[EkfState.POS][1])))
+                                                    (float(x[EkfState.POS][0]), float(x[EkfState.POS][1])),
+                                                    m2 <= cfg.gnss_gate_chi2, float(ekf.pose_std[1]))
         if correction is not None:
             # what was fused since the baseline's start was the spoofer's: back to the odometry's position
-            shift = correction - ekf.x[EkfState.POS]  # type: ignore[union-attr]
             ekf.x[EkfState.POS] = correction  # type: ignore[union-attr]
-            ekf.P[EkfState.POS, EkfState.POS] += np.eye(2) * (float(shift @ shift) / 4.0 + 1.0)  # type: ignore[union-attr]
+            ekf.P[EkfState.POS, EkfState.POS] += np.eye(2) * 2.0  # type: ignore[union-attr]  (the odometry's 8 s)
         if not trusted:
             self.n_gnss_suspect += 1
             return False

@@ -3,19 +3,23 @@
 The innovation gate of :mod:`~prml2_edge.runtime.filter` refuses a fix that jumps; a spoofer that walks
 the position away slowly passes it at every fix (each fix is only centimetres from the last), and the
 filter follows. :class:`GnssCheck` compares what the fixes say the car did over the last
-:attr:`~GnssCheckConfig.baseline_s` with what the car measured itself over the same time: a track
-integrated from the rear-axle wheel speed (scaled by the filter's wheel-scale state) along a heading
-integrated from the CAN yaw rate (less the filter's offset state). That heading follows the
-filter's slowly (:attr:`~GnssCheckConfig.align_tau_s`) and only while GNSS is trusted, so a walk
-of the fixes in any direction shows up as a displacement the odometry does not have.
+:attr:`~GnssCheckConfig.baseline_s` with what the car measured itself over the same time: the
+filter's own dead reckoning (its prediction from the model, the wheels and the gyro, step by step),
+with every GNSS correction left out. A fix changes that track only through the states it corrects
+(velocity, heading rate), so a walk of the fixes in any direction shows up as a displacement the
+car did not make. (A track from the CAN gyro alone drifts metres in 8 s on a car with 1.28 deg/s
+steps.)
 
 When the discrepancy exceeds ``tol_m + tol_per_m * distance`` the fixes are *suspect*: none is
 fused (the pose dead-reckons and its status says why), and the filter's position is moved back to
 where the odometry puts it from the start of the baseline (what it fused since then was the
-spoofer's). While suspect, each fix is compared with the odometry's track from that last trusted
-position (same tolerance, over the distance since); the suspicion ends when
-:attr:`~GnssCheckConfig.clear_fixes` consecutive fixes agree with it: real GNSS that returns after a
-spoofer stops is fused again; a spoofer that keeps its false position is not.
+spoofer's). The tolerance grows with the filter's heading uncertainty at the baseline's start, and
+the check arms only after :attr:`~GnssCheckConfig.arm_fixes` trusted fixes (the filter has
+converged). While suspect, the fixes must move like the car over a whole baseline of suspect fixes
+*and* pass the filter's innovation gate, :attr:`~GnssCheckConfig.clear_fixes` times in a row: real
+GNSS that returns is fused again; a walk is never consistent over a full baseline, and a spoofer
+that stops and holds its false position stays outside the gate while the filter is confident (once
+its dead-reckoning uncertainty covers the false position, the two cannot be told apart).
 """
 
 from __future__ import annotations
@@ -32,12 +36,11 @@ class GnssCheckConfig:
     enabled: bool = True
     baseline_s: float = 8.0  # compare displacements over this long
     min_baseline_s: float = 3.0  # ... at least this long (after a restart)
-    tol_m: float = 2.5  # GNSS noise of the two end fixes and the odometry's
-    tol_per_m: float = 0.02  # heading (~1 deg) and scale error per metre driven
-    align_tau_s: float = 60.0  # the odometry heading follows the filter's this slowly (trusted GNSS only)
+    tol_m: float = 2.0  # GNSS noise of the two end fixes (0.5 m each) and the odometry's
+    tol_per_m: float = 0.01  # scale and gyro error per metre driven (the filter's heading uncertainty adds to it)
     clear_fixes: int = 20  # consecutive agreeing fixes (2 s at 10 Hz) end a suspicion
-    min_speed_mps: float = 1.0  # below: the odometry holds (ABS wheel speeds read 0)
     fused_gap_s: float = 0.5  # a suspicion moves the pose back only when fixes were being fused up to then
+    arm_fixes: int = 100  # the check arms after this many trusted fixes (10 s at 10 Hz: the filter has converged)
 
 
 @dataclass
@@ -46,6 +49,7 @@ class _Entry:
     fix: tuple[float, float]
     odo: tuple[float, float]
     pose: tuple[float, float]  # the filter's position then
+    psi_std: float = 0.0  # the filter's heading uncertainty then [rad]
 
 
 class GnssCheck:
@@ -59,93 +63,102 @@ class GnssCheck:
         self.reset()
 
     def reset(self) -> None:
-        self.psi: float | None = None  # odometry heading [rad]
-        self.odo = [0.0, 0.0]
+        self._last: tuple[float, float] | None = None
+        self.odo = [0.0, 0.0]  # the filter's own displacement, GNSS corrections left out [m]
         self.history: collections.deque[_Entry] = collections.deque()
         self.suspect = False
         self.reason = ""
         self._agree = 0
-        self._anchor: tuple | None = None  # (t, odometry, position) the suspect fixes are judged from
+        self._suspect_hist: collections.deque[_Entry] = collections.deque()
+        self._trusted = 0  # fixes trusted since the start (the check arms after arm_fixes)
         self.last_discrepancy_m = 0.0
 
-    def step(self, dt: float, yaw_rate: float | None, wheel_speed: float | None, filter_psi: float) -> None:
-        """Integrate the odometry one step (``yaw_rate`` and ``wheel_speed`` already calibrated; None: invalid)."""
-        cfg = self.config
-        if self.psi is None:
-            self.psi = filter_psi
-        if yaw_rate is None or wheel_speed is None:
-            self.history.clear()  # a hole in the odometry: start a new baseline
-            self.psi = filter_psi if not self.suspect else self.psi
-            return
-        self.psi += yaw_rate * dt
-        if not self.suspect:
-            d = math.remainder(filter_psi - self.psi, 2.0 * math.pi)
-            self.psi += d * dt / cfg.align_tau_s
-        if wheel_speed >= cfg.min_speed_mps:
-            self.odo[0] += wheel_speed * math.cos(self.psi) * dt
-            self.odo[1] += wheel_speed * math.sin(self.psi) * dt
+    def step(self, x_m: float, y_m: float) -> None:
+        """The filter's position after this step's prediction and measurements, before any GNSS fix: the
+        odometry advances by what the filter moved on its own since the last :meth:`settle`."""
+        if self._last is not None:
+            self.odo[0] += x_m - self._last[0]
+            self.odo[1] += y_m - self._last[1]
 
-    def check(self, t: float, fix_xy: tuple[float, float], pose_xy: tuple[float, float]
-              ) -> tuple[bool, np.ndarray | None]:
+    def settle(self, x_m: float, y_m: float) -> None:
+        """The filter's position at the end of the step (after a GNSS fix, if one was fused)."""
+        self._last = (x_m, y_m)
+
+    def _disc(self, hist: collections.deque, fix_xy: tuple[float, float]) -> tuple[float, float, float]:
+        """``(discrepancy, tolerance, baseline)`` of ``fix_xy`` against the oldest entry of ``hist``."""
+        cfg = self.config
+        old = hist[0]
+        g = (fix_xy[0] - old.fix[0], fix_xy[1] - old.fix[1])
+        o = (self.odo[0] - old.odo[0], self.odo[1] - old.odo[1])
+        dist = math.hypot(*o)
+        # the odometry's heading is the filter's from the baseline's start: its uncertainty widens the tolerance
+        tol = cfg.tol_m + (cfg.tol_per_m + 2.0 * old.psi_std) * dist
+        return math.hypot(g[0] - o[0], g[1] - o[1]), tol, old.t
+
+    def check(self, t: float, fix_xy: tuple[float, float], pose_xy: tuple[float, float], in_gate: bool,
+              psi_std: float = 0.0) -> tuple[bool, np.ndarray | None]:
         """One fix: ``(trusted, correction)``. ``correction`` (2,) is where to move the filter's position when a
-        suspicion starts (the odometry's position from the baseline's start), else None."""
+        suspicion starts (the odometry's position from the baseline's start), else None. ``in_gate``: the fix
+        passes the filter's innovation gate; ``psi_std`` the filter's heading uncertainty now [rad]."""
         cfg = self.config
         if not cfg.enabled:
             return True, None
+        entry = _Entry(t, fix_xy, (self.odo[0], self.odo[1]), pose_xy, min(psi_std, 0.1))
+        if self.suspect:
+            return self._while_suspect(t, entry, in_gate), None
         hist = self.history
         if hist and t - hist[-1].t > 2.0 * cfg.baseline_s:
             hist.clear()  # after an outage the baseline starts again
+            self._trusted = 0
         recent = bool(hist) and t - hist[-1].t <= cfg.fused_gap_s  # the filter was following the fixes
-        entry = _Entry(t, fix_xy, (self.odo[0], self.odo[1]), pose_xy)
         while len(hist) > 1 and t - hist[1].t >= cfg.baseline_s:
             hist.popleft()
-        correction = None
-        if self.suspect:
-            # judged against the odometry's track from the last trusted position, not against a fresh baseline of
-            # the suspect fixes (a walk seen over a few seconds looks like driving)
-            t_a, odo_a, pos_a = self._anchor  # type: ignore[misc]
-            o = (self.odo[0] - odo_a[0], self.odo[1] - odo_a[1])
-            pred = (pos_a[0] + o[0], pos_a[1] + o[1])
-            disc = math.hypot(fix_xy[0] - pred[0], fix_xy[1] - pred[1])
+        if hist and t - hist[0].t >= cfg.min_baseline_s and self._trusted >= cfg.arm_fixes:
+            disc, tol, t_old = self._disc(hist, fix_xy)
             self.last_discrepancy_m = disc
-            if disc <= cfg.tol_m + cfg.tol_per_m * math.hypot(*o):
-                self._agree += 1
-                if self._agree >= cfg.clear_fixes:
-                    self.suspect = False
-                    self.reason = ""
-                    hist.clear()
-            else:
-                self._agree = 0
-            if self.suspect:
-                self.fixes_refused += 1
-                return False, None
-            hist.append(entry)
-            return True, None
-        if hist and t - hist[0].t >= cfg.min_baseline_s:
-            old = hist[0]
-            g = (fix_xy[0] - old.fix[0], fix_xy[1] - old.fix[1])
-            o = (self.odo[0] - old.odo[0], self.odo[1] - old.odo[1])
-            dist = math.hypot(*o)
-            disc = math.hypot(g[0] - o[0], g[1] - o[1])
-            self.last_discrepancy_m = disc
-            tol = cfg.tol_m + cfg.tol_per_m * dist
             if disc > tol:
+                old = hist[0]
                 self.suspect = True
                 self.episodes += 1
                 self._agree = 0
                 self.fixes_refused += 1
+                self._suspect_hist.clear()
+                self._suspect_hist.append(entry)
                 self.reason = (f"GNSS suspect: the fixes moved {disc:.1f} m away from the wheels' and gyro's track "
-                               f"over {t - old.t:.1f} s (allowed {tol:.1f} m); not fused while they disagree")
+                               f"over {t - t_old:.1f} s (allowed {tol:.1f} m); not fused while they disagree")
                 if self.first_reason is None:
                     self.first_reason = self.reason
                 if recent:
-                    correction = np.array([old.pose[0] + o[0], old.pose[1] + o[1]])
-                    self._anchor = (old.t, old.odo, old.pose)
-                else:
-                    self._anchor = (t, (self.odo[0], self.odo[1]), pose_xy)
-                return False, correction
+                    o = (self.odo[0] - old.odo[0], self.odo[1] - old.odo[1])
+                    return False, np.array([old.pose[0] + o[0], old.pose[1] + o[1]])
+                return False, None
         hist.append(entry)
+        self._trusted += 1
         return True, None
+
+    def _while_suspect(self, t: float, entry: _Entry, in_gate: bool) -> bool:
+        """A fix while suspect: trusted again after ``clear_fixes`` in a row that move like the car over a whole
+        baseline of suspect fixes *and* lie inside the filter's gate (a walk is never consistent over a full
+        baseline; a spoofer holding a false position stays outside the gate while the filter is confident)."""
+        cfg = self.config
+        sh = self._suspect_hist
+        while len(sh) > 1 and t - sh[1].t >= cfg.baseline_s:
+            sh.popleft()
+        agree = False
+        if t - sh[0].t >= cfg.baseline_s - 0.5:
+            disc, tol, _ = self._disc(sh, entry.fix)
+            self.last_discrepancy_m = disc
+            agree = disc <= tol and in_gate
+        sh.append(entry)
+        self._agree = self._agree + 1 if agree else 0
+        if self._agree >= cfg.clear_fixes:
+            self.suspect = False
+            self.reason = ""
+            self.history.clear()
+            self._trusted = cfg.arm_fixes  # armed at once: the car has been checked against these fixes
+            return True
+        self.fixes_refused += 1
+        return False
 
     def summary(self) -> dict:
         return {"episodes": self.episodes, "fixes_refused": self.fixes_refused, "suspect_now": self.suspect,
