@@ -37,7 +37,8 @@ class GnssCheckConfig:
     baseline_s: float = 8.0  # compare displacements over this long
     min_baseline_s: float = 3.0  # ... at least this long (after a restart)
     tol_m: float = 2.0  # GNSS noise of the two end fixes (0.5 m each) and the odometry's
-    tol_per_m: float = 0.01  # scale and gyro error per metre driven (the filter's heading uncertainty adds to it)
+    tol_per_m: float = 0.01  # scale and gyro error per metre driven ...
+    heading_sigmas: float = 1.0  # ... plus this many of the filter's heading sigmas at the baseline's start
     clear_fixes: int = 20  # consecutive agreeing fixes (2 s at 10 Hz) end a suspicion
     fused_gap_s: float = 0.5  # a suspicion moves the pose back only when fixes were being fused up to then
     arm_fixes: int = 100  # the check arms after this many trusted fixes (10 s at 10 Hz: the filter has converged)
@@ -92,7 +93,7 @@ class GnssCheck:
         o = (self.odo[0] - old.odo[0], self.odo[1] - old.odo[1])
         dist = math.hypot(*o)
         # the odometry's heading is the filter's from the baseline's start: its uncertainty widens the tolerance
-        tol = cfg.tol_m + (cfg.tol_per_m + 2.0 * old.psi_std) * dist
+        tol = cfg.tol_m + (cfg.tol_per_m + cfg.heading_sigmas * old.psi_std) * dist
         return math.hypot(g[0] - o[0], g[1] - o[1]), tol, old.t
 
     def check(self, t: float, fix_xy: tuple[float, float], pose_xy: tuple[float, float], in_gate: bool,

@@ -76,6 +76,7 @@ class PlausibilityConfig:
     steering_ratio: float = 15.0  # only for the front wheels' steer correction
     wheel_tol_mps: float = 0.3
     wheel_tol_rel: float = 0.04
+    wheel_vote_tol_mps: float = 0.15  # a wheel further than this from the others does not vote on the rotation
     wheel_slip_per_mps2: float = 0.015  # driven and braked wheels slip: relative tolerance per m/s^2 of |a_x|
     speedo_tol_mps: float = 0.6
     speedo_tol_rel: float = 0.05
@@ -103,7 +104,8 @@ class PlausibilityConfig:
     ay_check_max_mps2: float = 6.0  # rotation relations are linear below this lateral acceleration
     stuck_hold_s: float = 0.5
     dropout_tol: float = 4.0  # a signal reading 0 this many tolerances from its prediction is flagged at once
-    stuck_span_tol: float = 0.75  # ... while the prediction moved by this many tolerances (and 3 resolution steps)
+    stuck_res_steps: float = 5.0  # ... while the smoothed prediction moved by this many resolution steps ...
+    stuck_span_tol: float = 0.5  # ... plus this many absolute tolerances
     substitute_stale: bool = True  # a stale signal (message stopped) gets the others' prediction too
     max_substituted: int = 3  # at most this many signals replaced at once (a whole ESP message is two)
 
@@ -221,6 +223,10 @@ class Plausibility:
         self.dt_s = float(dt_s)
         rate = np.asarray(rate_hz, dtype=float)
         self.stuck_hold_s = [max(cfg.stuck_hold_s, 5.0 / float(r)) for r in rate]
+        self._tol_abs = [cfg.wheel_tol_mps] * N
+        for i, v in ((VS, cfg.speedo_tol_mps), (YAW, cfg.yaw_tol_radps), (AY, cfg.ay_tol_mps2),
+                     (SW, cfg.steer_tol_rad), (BP, cfg.brake_min_bar)):
+            self._tol_abs[i] = v
         self.absent = [bool(x) for x in (np.zeros(N, bool) if substituted is None else np.asarray(substituted))]
         self.reset()
 
@@ -371,7 +377,7 @@ class Plausibility:
                 if ok[i] and len(others) == 3 and self.checks[i].resid ** 2 < 0.25 * tol[i] ** 2:
                     self.wheel_ratio[j].update(self.wheel_ratio[j].value * u[j] / ref if ref > 0 else 1.0)
         # a wheel whose residual already exceeds half its tolerance does not vote on the rotation
-        calm_w = [ok[i] and (resid[i] is None or abs(resid[i]) < 0.5 * tol[i]) for i in WHEELS]  # type: ignore
+        calm_w = [ok[i] and (resid[i] is None or abs(resid[i]) < cfg.wheel_vote_tol_mps) for i in WHEELS]  # type: ignore
         if v_hat is None:
             self._v_lp_set = False  # the instrument's filter starts again when the wheels are back
         elif not self._v_lp_set:
@@ -428,6 +434,16 @@ class Plausibility:
                               + 0.02 * abs(est[s_]) + cfg.lag_yaw_s * env)
             self._est_seen[s_] = s_ in est
         sources_ok = {s: e for s, e in est.items() if s in (RL, FL) or ok[s]}
+        if RL in sources_ok and FL in sources_ok and \
+                abs(sources_ok[RL] - sources_ok[FL]) > 3.0 * (sd[RL] + sd[FL]) + 1.0 * _DEG:
+            # the two wheel pairs disagree (a wheel a little off moves its pair's estimate by degrees per second):
+            # keep the one closer to the other estimates, or neither
+            rest = [e for k, e in sources_ok.items() if k not in (RL, FL)]
+            if rest:
+                m = _median(rest)
+                del sources_ok[RL if abs(sources_ok[RL] - m) > abs(sources_ok[FL] - m) else FL]
+            else:
+                del sources_ok[RL], sources_ok[FL]
         if sources_ok:
             omega = _weighted_median([(e, sd[k]) for k, e in sources_ok.items()])[0]
         else:
@@ -472,7 +488,8 @@ class Plausibility:
         # learning the rotation relations from the gyro, while everything involved agrees
         # the gyro teaches the other relations only while it agrees with them (a fault not yet flagged must not
         # pull them along)
-        gyro_calm = resid[YAW] is None or abs(self.checks[YAW].resid) < 0.5 * tol[YAW]
+        warming = min(self.rear.n, self.front.n) * dt < cfg.warmup_s  # nothing to check the gyro against yet
+        gyro_calm = abs(self.checks[YAW].resid) < 0.5 * tol[YAW] if resid[YAW] is not None else warming
         calm = moving and ok[YAW] and gyro_calm and (not valid[AY] or abs(x[AY]) < cfg.ay_check_max_mps2)
         if calm:
             wy = x[YAW]
@@ -523,18 +540,20 @@ class Plausibility:
                 c.last_value = xi
                 c.changed_t = t
                 c.pred_lo, c.pred_hi = math.inf, -math.inf
-            p = pred[i]
             r = resid[i]
             if r is None:
                 continue
             c.resid += self._alpha[i] * (r - c.resid)
             ti = tol[i]
-            if p is not None:
-                c.pred_lo = min(c.pred_lo, p)
-                c.pred_hi = max(c.pred_hi, p)
+            # stuck: the value has not changed while the *smoothed* prediction (the held value less the smoothed
+            # residual) moved by more than a few resolution steps; a healthy sensor of that resolution would have
+            # changed (the raw prediction's noise alone must not trip it on a coarse sensor)
+            c.pred_lo = min(c.pred_lo, -c.resid)
+            c.pred_hi = max(c.pred_hi, -c.resid)
             span = c.pred_hi - c.pred_lo
-            stuck = (t - c.changed_t >= self.stuck_hold_s[i] and span > cfg.stuck_span_tol * ti
-                     and span > 3.0 * self._resolution(i))
+            stuck = (t - c.changed_t >= self.stuck_hold_s[i] and abs(c.resid) > 0.5 * ti
+                     and span > cfg.stuck_res_steps * self._resolution(i) + cfg.stuck_span_tol * self._tol_abs[i]
+                     and (i != BP or xi > self.brake_idle.value + cfg.brake_min_bar))  # idle: nobody brakes
             if not c.flagged:
                 if abs(c.resid) > ti:
                     c.over_s += dt
@@ -547,7 +566,7 @@ class Plausibility:
                     c.flagged = True
                     c.since_t = t
                     c.under_s = 0.0
-                    c.reason = self._reason(i, xi, p, c, stuck, t)
+                    c.reason = self._reason(i, xi, pred[i], c, stuck, t)
                     newly.append(i)
                     self.flag_episodes[i] += 1
                     if self.first_flag[i] is None:
