@@ -6,11 +6,12 @@ through the real pipeline (decode -> assemble -> ONNX inference -> physics guard
 (overhead), for every model x precision x thread count asked for, beside this CPU's measured
 fp32 GEMM rate. Precisions (variants made here from each fp32 model, as ``prml2 export`` makes them):
 ``fp32``; ``int8`` dynamic quantisation; ``int8-static`` static QDQ calibrated on simulated windows;
-``fp32-opt`` onnxruntime's transformer optimiser. Each variant's z RMSE change against its fp32 graph
-is measured in the same run on ``--accuracy-windows`` windows of simulated drives (seeds apart from the
-calibration drives and from the benchmark dataset). ``--json`` prints one JSON object: ``{"configs":
-[{"name", "e2e_ms": {"p50", "p95", "p99", "max", ...}, "model_ms", "overhead_ms", "accuracy", ...}],
-"machine", "gemm", ...}``.
+``fp32-opt`` fused attention and onnxruntime's transformer optimiser (``prml2 export --optimize``);
+``int8-opt`` that graph dynamically quantised (``--optimize --int8``). Each variant's z RMSE change
+against its fp32 graph is measured in the same run on ``--accuracy-windows`` windows of simulated
+drives (seeds apart from the calibration drives and from the benchmark dataset). ``--json`` prints
+one JSON object: ``{"configs": [{"name", "e2e_ms": {"p50", "p95", "p99", "max", ...}, "model_ms",
+"overhead_ms", "accuracy", ...}], "machine", "gemm", ...}``.
 The full benchmarks (paper-size model, torch comparison, throughput) are in ``benchmarks/``.
 """
 
@@ -35,8 +36,8 @@ def _int_list(text: str) -> list[int]:
     return values
 
 
-PRECISIONS = ("fp32", "int8", "int8-static", "fp32-opt")
-MADE_HERE = ("int8", "int8-static", "fp32-opt")  # variants quantised/optimised here: they need the onnx package
+PRECISIONS = ("fp32", "int8", "int8-static", "fp32-opt", "int8-opt")
+MADE_HERE = ("int8", "int8-static", "fp32-opt", "int8-opt")  # variants made here: they need the onnx package
 
 
 def _precisions(text: str) -> list[str]:
@@ -54,7 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="onnxruntime intra-op thread counts to measure (default 1,2; capped at this box's cores)")
     parser.add_argument("--precision", type=_precisions, default=["fp32", "int8"], metavar="P[,P]",
                         help="any of fp32, int8 (dynamic quantisation), int8-static (static QDQ, calibrated on "
-                             "simulated windows), fp32-opt (onnxruntime's transformer optimiser); the variants are "
+                             "simulated windows), fp32-opt (fused attention + onnxruntime's transformer "
+                             "optimiser), int8-opt (that, dynamically quantised); the variants are "
                              "made here and need the onnx package (skipped with a note otherwise). Default fp32,int8")
     parser.add_argument("--accuracy-windows", type=int, default=100, metavar="N",
                         help="simulated windows on which each variant's z RMSE change against fp32 is measured "
@@ -130,9 +132,14 @@ def _variants(path: Path, precisions: list[str], tmp: Path, calibration_windows:
                 meta = quantize.graph_metadata(path)
                 windows, _ = quantize.simulated_windows(calibration_windows, L=meta.L, H=meta.H)
                 variants.append((precision, quantize.quantize_static_int8(path, dst, windows)))
-            else:
+            elif precision == "fp32-opt":
                 quantize.optimize_transformer(path, dst)
                 variants.append((precision, dst))
+            else:  # int8-opt
+                fused = tmp / f"{path.stem}_fp32-opt.onnx"
+                if not fused.is_file():
+                    quantize.optimize_transformer(path, fused)
+                variants.append((precision, quantize.quantize_prml2(fused, dst)))
         except ModelError as exc:
             notes.append(f"{precision} of {path.name} skipped: {exc}")
     return variants

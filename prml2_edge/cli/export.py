@@ -16,9 +16,11 @@ layer then computes a single query row), ``--rows all`` for every one of the L -
 windows (max abs difference <= 1e-4). ``--int8`` (or ``--int8 dynamic``) applies onnxruntime dynamic
 quantisation, ``--int8 static`` static QDQ quantisation calibrated on windows of simulated drives
 (the project's simulator, ``--calibration-windows``; never the dataset); both print the z RMSE of
-the fp32 and int8 graphs on validation windows (needs ``--data``). ``--optimize`` runs onnxruntime's
-offline transformer optimiser on the fp32 graph, prints the fusions that applied and its largest
-difference from the fp32 graph. The fp32 graph is kept beside a variant as ``<name>.fp32.onnx``.
+the fp32 and int8 graphs on validation windows (needs ``--data``). ``--optimize`` fuses each
+attention into one ``com.microsoft.MultiHeadAttention`` node (``prml2_edge.training.fusion``) and runs
+onnxruntime's offline transformer optimiser, prints the fusions that applied and the largest
+difference from the fp32 graph; with ``--int8`` (dynamic) the fused graph is then quantised (kept
+beside it as ``<name>.opt.onnx``). The fp32 graph is kept beside a variant as ``<name>.fp32.onnx``.
 Every variant runs on the edge install (onnxruntime only).
 """
 
@@ -114,8 +116,9 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--parity-windows must be at least 100, got {args.parity_windows}")
     if args.int8 and not args.data:
         raise ConfigError("--int8 needs --data DIR: the accuracy change is measured on its validation windows")
-    if args.int8 and args.optimize:
-        raise ConfigError("--optimize and --int8 are separate variants; export one of them per command")
+    if args.int8 == "static" and args.optimize:
+        raise ConfigError("--optimize combines with --int8 dynamic only (static QDQ on the fused graph falls back "
+                          "to float kernels in onnxruntime)")
     if args.int8 == "static" and args.calibration_windows < 1:
         raise ConfigError(f"--calibration-windows must be at least 1, got {args.calibration_windows}")
     out = Path(args.out)
@@ -146,14 +149,17 @@ def run(args: argparse.Namespace) -> int:
     if not (diff["mean"] <= PARITY_TOL and diff["var"] <= PARITY_TOL):
         raise ModelError(f"onnxruntime output differs from torch by {max(diff['mean'], diff['var']):.2e}; "
                          "report this with the checkpoint")
+    source = fp32_path  # what --int8 quantises: the fp32 graph, or the fused one with --optimize
     if args.optimize:
         from prml2_edge.training.quantize import max_output_difference, optimize_transformer
 
-        fused = optimize_transformer(fp32_path, out)
-        diff = max_output_difference(fp32_path, out, windows)
+        opt_path = out.with_name(out.stem + ".opt.onnx") if args.int8 else out
+        fused = optimize_transformer(fp32_path, opt_path)
+        diff = max_output_difference(fp32_path, opt_path, windows)
         applied = ", ".join(f"{k} {v}" for k, v in sorted(fused.items())) or "none"
-        print(f"optimised: {out} ({out.stat().st_size / 1e6:.2f} MB); fusions applied: {applied}; "
+        print(f"optimised: {opt_path} ({opt_path.stat().st_size / 1e6:.2f} MB); fusions applied: {applied}; "
               f"max |d mean| against the fp32 graph {diff['mean']:.2e}, max |d var| {diff['var']:.2e}")
+        source = opt_path
     if args.int8:
         if args.int8 == "static":
             from prml2_edge.training.quantize import quantize_static_int8, simulated_windows
@@ -162,8 +168,8 @@ def run(args: argparse.Namespace) -> int:
             quantize_static_int8(fp32_path, out, calibration)
             how = f"static QDQ, calibrated on {len(calibration)} simulated windows"
         else:
-            quantize_int8(fp32_path, out)
-            how = "dynamic"
+            quantize_int8(source, out)
+            how = "dynamic" + (", on the optimised graph" if args.optimize else "")
         report = compare_int8(fp32_path, out, windows, z_dec)
         print(f"int8 ({how}): {out} ({out.stat().st_size / 1e6:.2f} MB); z RMSE on {report['n_windows']} "
               "validation windows (before the guard), fp32 -> int8:")

@@ -64,7 +64,8 @@ def quantize_int8(src: str | Path, dst: str | Path, per_channel: bool = False, k
             # substring match: in a newest-rows (streaming) export the module names sit under "/model/"
             exclude = [n.name for n in graph.node if any(prefix in n.name for prefix in keep_fp32)]
         quantize_dynamic(str(src), str(dst), weight_type=QuantType.QInt8, per_channel=per_channel,
-                         nodes_to_exclude=exclude, extra_options={"MatMulConstBOnly": bool(weights_only)})
+                         nodes_to_exclude=exclude, extra_options={"MatMulConstBOnly": bool(weights_only),
+                                        "DefaultTensorType": onnx.TensorProto.FLOAT})
     finally:
         root.setLevel(level)
     _carry_metadata(src, dst, {"int8": True})
@@ -219,19 +220,26 @@ def quantize_static_int8(src: str | Path, dst: str | Path, windows, keep_fp32: S
     return dst
 
 
-def optimize_transformer(src: str | Path, dst: str | Path) -> dict:
-    """Write ``src`` through onnxruntime's offline transformer optimiser (BERT fusions, CPU) to ``dst``.
+def optimize_transformer(src: str | Path, dst: str | Path, attention: bool = True) -> dict:
+    """Write ``src`` optimised to ``dst``: the project's attention fusion (:mod:`prml2_edge.training.fusion`,
+    unless ``attention`` is False), then onnxruntime's offline transformer optimiser (BERT fusions, CPU).
 
-    Returns the fusions that applied (``{"Attention": 0, "SkipLayerNormalization": 10, ...}``, from the
-    optimiser's own statistics) and records them in the metadata (``training["variant"] = "optimized"``).
-    Head count and width come from the model's metadata.
+    Returns the fusions that applied, e.g. ``{"MultiHeadAttention": 6, "SkipLayerNormalization": 10, ...}``
+    (the optimiser's own statistics plus the attention pass's count; ``"ort_Attention"`` is what the
+    optimiser's attention fusion found itself), and records them in the metadata
+    (``training["variant"] = "optimized"``, ``training["fusions"]``). Head count and width come from the
+    model's metadata.
     """
     if not int8_available():
         raise ModelError("the transformer optimiser needs the 'onnx' package (pip install 'prml2-edge[train]')")
     import logging
+    import tempfile
 
+    import onnx
     from onnxruntime.transformers import optimizer
     from onnxruntime.transformers.fusion_options import FusionOptions
+
+    from prml2_edge.training.fusion import fuse_attention
 
     src, dst = Path(src), Path(dst)
     meta = _read_prml2_meta(src)
@@ -243,14 +251,26 @@ def optimize_transformer(src: str | Path, dst: str | Path) -> dict:
     for lg in quiet:
         lg.setLevel(logging.ERROR)  # "Model producer not matched" and per-fusion INFO lines
     try:
-        model = optimizer.optimize_model(str(src), model_type="bert", num_heads=int(cfg["n_heads"]),
-                                         hidden_size=int(cfg["d_model"]), optimization_options=FusionOptions("bert"),
-                                         opt_level=0, use_gpu=False)
-        fused = {k: int(v) for k, v in model.get_fused_operator_statistics().items() if v}
-        model.save_model_to_file(str(dst))
+        with tempfile.TemporaryDirectory(prefix="prml2-opt-") as tmp:
+            proto = onnx.load(str(src))
+            n_mha = fuse_attention(proto) if attention else 0
+            staged = Path(tmp) / "attention.onnx"
+            onnx.save(proto, str(staged))
+            model = optimizer.optimize_model(str(staged), model_type="bert", num_heads=int(cfg["n_heads"]),
+                                             hidden_size=int(cfg["d_model"]),
+                                             optimization_options=FusionOptions("bert"), opt_level=0, use_gpu=False)
+            stats = model.get_fused_operator_statistics()
+            model.save_model_to_file(str(dst))
     finally:
         for lg, lv in zip(quiet, levels, strict=True):
             lg.setLevel(lv)
+    fused = {k: int(v) for k, v in stats.items() if v and k != "MultiHeadAttention"}
+    # the optimiser counts MultiHeadAttention nodes in the graph (ours included); its own attention fusion is
+    # "Attention"/"MultiHeadAttention" beyond what the pass made
+    fused["ort_Attention"] = int(stats.get("Attention", 0)) + max(0, int(stats.get("MultiHeadAttention", 0)) - n_mha)
+    fused.pop("Attention", None)
+    if n_mha:
+        fused["MultiHeadAttention"] = n_mha
     _carry_metadata(src, dst, {"variant": "optimized", "fusions": fused})
     return fused
 
