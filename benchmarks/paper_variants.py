@@ -4,8 +4,10 @@ One run of ``prml2 bench`` (torch-free, in a child process) on the paper-size st
 (``benchmarks/bench_models.py``): fp32, dynamic int8, static int8 (QDQ, calibrated on simulated
 windows) and the transformer-optimised fp32 graph, interleaved chunk by chunk on the same replayed
 drive through the real pipeline, each with its z RMSE change against fp32 on simulated windows;
-then onnxruntime's per-operator profile (``model_profile.py``) of each variant, so that a missed
-target says where the time goes and by how much. Targets (issue 17): e2e p99 <= 20 ms fp32, or
+then onnxruntime's per-operator profile (``model_profile.py``) of each variant and of the graph of
+onnxruntime's own offline transformer optimiser, so that a missed target says where the time goes
+and by how much; and what the box offers for bf16 (AMX flags; whether onnxruntime's CPU provider has
+a bf16 MatMul kernel, tried). Targets (issue 17): e2e p99 <= 20 ms fp32, or
 <= 8 ms reduced precision with z RMSE change <= 1 %, 2 threads, idle machine.
 
 Usage::
@@ -34,7 +36,7 @@ from model_profile import profile  # noqa: E402
 from paths import REPO, RESULTS, prepared_paths  # noqa: E402
 
 FP32_P99_MS, REDUCED_P99_MS, RMSE_CHANGE = 20.0, 8.0, 0.01
-PRECISIONS = "fp32,int8,int8-static,fp32-opt"
+PRECISIONS = "fp32,int8,int8-static,fp32-opt,int8-opt"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -46,6 +48,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--accuracy-windows", type=int, default=100)
     ap.add_argument("--profile-runs", type=int, default=30, help="inferences per variant profiled (0: no profile)")
     ap.add_argument("--profile-threads", type=int, default=1)
+    ap.add_argument("--no-ort-optimizer", dest="ort_optimizer", action="store_false",
+                    help="skip the profile of onnxruntime's offline transformer optimiser (its fusions alone)")
     ap.add_argument("--out", default=str(RESULTS / "paper_variants.json"))
     args = ap.parse_args(argv)
 
@@ -77,17 +81,45 @@ def main(argv: list[str] | None = None) -> int:
         doc["profiles"] = {}
         with tempfile.TemporaryDirectory(prefix="prml2-variants-") as tmp:
             variants = _variants(paths["fp32"], [r["precision"] for r in rows], Path(tmp))
+            if args.ort_optimizer:  # onnxruntime's own offline fusions, for the record (profile only)
+                from prml2_edge.training.quantize import optimize_transformer
+
+                ort_path = Path(tmp) / "paper_ort_optimizer.onnx"
+                doc["ort_optimizer_fusions"] = optimize_transformer(paths["fp32"], ort_path, attention=False,
+                                                                    ort_fusions=True)
+                variants.append(("fp32-ort-optimizer", ort_path))
             for precision, path in variants:
                 load0 = load_average()
                 prof = profile(path, args.profile_threads, args.profile_runs)
                 prof["load_average"] = [load0, load_average()]
                 doc["profiles"][precision] = prof
+    doc["bf16"] = bf16_paths(doc["machine"])
     doc["load_average_end"] = load_average()
     out = report.save(doc, args.out, update=False)
     for line in lines(doc):
         print(line)
     print(f"wrote {out}")
     return 0
+
+
+def bf16_paths(machine: dict) -> dict:
+    """What this box offers for bf16: the CPU flags, and whether onnxruntime's CPU provider has a bf16 MatMul
+    kernel (tried on a one-node graph, not assumed)."""
+    import onnxruntime as ort
+    from onnx import TensorProto, helper
+
+    info = {"amx": [f for f in machine["flags"] if f.startswith("amx")],
+            "avx512_bf16": "avx512_bf16" in machine["flags"]}
+    io = [helper.make_tensor_value_info(n, TensorProto.BFLOAT16, [4, 4]) for n in ("a", "b", "c")]
+    graph = helper.make_graph([helper.make_node("MatMul", ["a", "b"], ["c"])], "bf16", io[:2], io[2:])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
+    try:
+        ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+        info["ort_cpu_bf16_matmul"] = True
+    except Exception as exc:  # noqa: BLE001 - onnxruntime's NOT_IMPLEMENTED
+        info["ort_cpu_bf16_matmul"] = False
+        info["ort_cpu_bf16_matmul_error"] = str(exc).splitlines()[0][:160]
+    return info
 
 
 def _variants(fp32: str, precisions: list[str], tmp: Path) -> list[tuple[str, Path]]:
@@ -108,6 +140,11 @@ def lines(doc: dict) -> list[str]:
         out.append(f"{r['name']:<28} {e['p50']:>8.2f} {e['p95']:>7.2f} {e['p99']:>7.2f} {r['model_ms']['p50']:>9.2f} "
                    f"{100 * r['z_rmse_change']:>9.2f}% {r['target_p99_ms']:>6g}  {'yes' if r['met'] else 'NO ':<4} "
                    f"{r['load_average'][0]} / {r['load_average'][1]}")
+    if "ort_optimizer_fusions" in doc:
+        out.append(f"onnxruntime's transformer optimiser on the fp32 graph: {doc['ort_optimizer_fusions']}")
+    b = doc.get("bf16", {})
+    out.append(f"bf16: AMX flags {b.get('amx') or 'none'}, avx512_bf16 {b.get('avx512_bf16')}, onnxruntime CPU "
+               f"bf16 MatMul kernel {b.get('ort_cpu_bf16_matmul')} {b.get('ort_cpu_bf16_matmul_error', '')}")
     for precision, prof in doc.get("profiles", {}).items():
         out.append(f"profile {precision}: {prof['kernel_us'] / 1e3:.2f} ms kernel time in "
                    f"{prof['nodes_per_inference']:.0f} nodes ({prof['threads']} thread(s), "

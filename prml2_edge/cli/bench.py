@@ -6,7 +6,7 @@ through the real pipeline (decode -> assemble -> ONNX inference -> physics guard
 (overhead), for every model x precision x thread count asked for, beside this CPU's measured
 fp32 GEMM rate. Precisions (variants made here from each fp32 model, as ``prml2 export`` makes them):
 ``fp32``; ``int8`` dynamic quantisation; ``int8-static`` static QDQ calibrated on simulated windows;
-``fp32-opt`` fused attention and onnxruntime's transformer optimiser (``prml2 export --optimize``);
+``fp32-opt`` fused attention (``prml2 export --optimize``);
 ``int8-opt`` that graph dynamically quantised (``--optimize --int8``). Each variant's z RMSE change
 against its fp32 graph is measured in the same run on ``--accuracy-windows`` windows of simulated
 drives (seeds apart from the calibration drives and from the benchmark dataset). ``--json`` prints
@@ -55,8 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="onnxruntime intra-op thread counts to measure (default 1,2; capped at this box's cores)")
     parser.add_argument("--precision", type=_precisions, default=["fp32", "int8"], metavar="P[,P]",
                         help="any of fp32, int8 (dynamic quantisation), int8-static (static QDQ, calibrated on "
-                             "simulated windows), fp32-opt (fused attention + onnxruntime's transformer "
-                             "optimiser), int8-opt (that, dynamically quantised); the variants are "
+                             "simulated windows), fp32-opt (fused attention, as prml2 export "
+                             "--optimize), int8-opt (that, dynamically quantised); the variants are "
                              "made here and need the onnx package (skipped with a note otherwise). Default fp32,int8")
     parser.add_argument("--accuracy-windows", type=int, default=100, metavar="N",
                         help="simulated windows on which each variant's z RMSE change against fp32 is measured "
