@@ -101,8 +101,8 @@ def _plan(args: argparse.Namespace) -> tuple[list[Path], list[int], list[str], l
     if len(threads) < len(args.threads):
         notes.append(f"thread counts above this box's {cores} usable cores skipped")
     precisions = list(dict.fromkeys(args.precision))
-    if args.accuracy_windows < 0 or args.calibration_windows < 1:
-        raise ConfigError("--accuracy-windows must be >= 0 and --calibration-windows >= 1")
+    if args.accuracy_windows < 0 or args.calibration_windows < 1 or args.chunk_s <= 0:
+        raise ConfigError("--accuracy-windows must be >= 0, --calibration-windows >= 1 and --chunk-s > 0")
     missing = [p for p in precisions if p in MADE_HERE]
     if missing and not int8_available():
         precisions = [p for p in precisions if p not in MADE_HERE]

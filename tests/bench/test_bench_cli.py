@@ -52,6 +52,8 @@ def test_bench_table_and_bad_arguments(tmp_path):
     assert "kinematic-test-fp32-1t" in res.stdout and "e2e p50" in res.stdout and "GEMM" in res.stdout
     short = _bench("--model", str(model), "--seconds", "2")
     assert short.returncode == 1 and "too short" in short.stderr
+    bad = _bench("--model", str(model), "--chunk-s", "0")
+    assert bad.returncode == 1 and "--chunk-s > 0" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
 
 
 def test_bench_measures_the_export_variants_side_by_side_with_their_accuracy(tmp_path):
