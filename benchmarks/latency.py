@@ -29,7 +29,7 @@ import torch
 
 from prml2_edge import schema
 from prml2_edge.bench.flops import gemm_shapes, inference_flops
-from prml2_edge.bench.latency import StepSamples, build_pipeline, measure_steps, open_session_model
+from prml2_edge.bench.latency import StepSamples, build_pipeline, measure_steps, open_session_model, split_frames
 from prml2_edge.bench.machine import gemm_rate, load_average, machine_info
 from prml2_edge.bench.replay_input import simulated_frames
 from prml2_edge.runtime.latency import DEADLINE_MS, PAPER_INFER_MS
@@ -41,23 +41,6 @@ import targets  # noqa: E402
 from torch_pipeline import torch_pipeline  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
-
-
-def _split_frames(frames, warmup_rows: int, chunk_s: float):
-    """(warm-up frames: window fill + warm-up rows, then chunks of ``chunk_s`` seconds of frames)."""
-    t0 = frames[0].timestamp
-    t_warm = t0 + warmup_rows * schema.DT_S
-    warm = [f for f in frames if f.timestamp < t_warm]
-    rest = frames[len(warm):]
-    chunks, cur, t_end = [], [], t_warm + chunk_s
-    for f in rest:
-        if f.timestamp >= t_end and cur:
-            chunks.append(cur)
-            cur, t_end = [], t_end + chunk_s
-        cur.append(f)
-    if cur:
-        chunks.append(cur)
-    return warm, chunks
 
 
 def run_model(bm: bench_models.BenchModel, threads: int, seconds: float, warmup_steps: int, chunk_s: float,
@@ -79,7 +62,7 @@ def run_model(bm: bench_models.BenchModel, threads: int, seconds: float, warmup_
                                                 replay.initial_pose)
     if with_bf16:
         pipes["torch-bf16"] = torch_pipeline(bm.torch_model, replay.initial_pose, dtype=torch.bfloat16)
-    warm, chunks = _split_frames(replay.frames, schema.WINDOW_LEN + warmup_steps, chunk_s)
+    warm, chunks = split_frames(replay.frames, schema.WINDOW_LEN + warmup_steps, chunk_s)
     samples = {k: StepSamples() for k in pipes}
     for pipe in pipes.values():
         measure_steps(pipe, warm)  # window fill and warm-up: not counted

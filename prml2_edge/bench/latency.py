@@ -73,6 +73,29 @@ def build_pipeline(model, initial_pose: InitialPose, signal_map: str = "prml2_on
     return Pipeline.build(map=signal_map, model=model, initial_pose=initial_pose)
 
 
+def split_frames(frames: Sequence[can.Message], warmup_rows: int, chunk_s: float):
+    """(warm-up frames: the first ``warmup_rows`` 50 Hz rows' worth, then chunks of ``chunk_s`` seconds of frames),
+    for measuring several pipelines on the same frames interleaved chunk by chunk (a change of machine load then
+    hits all of them alike)."""
+    from prml2_edge import schema
+
+    t0 = frames[0].timestamp
+    t_warm = t0 + warmup_rows * schema.DT_S
+    warm = [f for f in frames if f.timestamp < t_warm]
+    rest = frames[len(warm):]
+    chunks: list[list[can.Message]] = []
+    cur: list[can.Message] = []
+    t_end = t_warm + chunk_s
+    for f in rest:
+        if f.timestamp >= t_end and cur:
+            chunks.append(cur)
+            cur, t_end = [], t_end + chunk_s
+        cur.append(f)
+    if cur:
+        chunks.append(cur)
+    return warm, chunks
+
+
 def measure_steps(pipeline: Pipeline, frames: Iterable[can.Message], skip: int = 0) -> StepSamples:
     """Feed ``frames`` to ``pipeline`` as fast as it takes them; per-row samples (first ``skip`` rows with an
     inference dropped). The pipeline may already have seen earlier frames of the same stream."""

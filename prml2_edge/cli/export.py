@@ -4,6 +4,8 @@ Examples::
 
     prml2 export --checkpoint runs/edge/best.pt --out export/default/prml2_edge.onnx
     prml2 export --checkpoint runs/edge/best.pt --out out/prml2_edge_int8.onnx --int8 --data data/bench
+    prml2 export --checkpoint runs/edge/best.pt --out out/prml2_edge_s8.onnx --int8 static --data data/bench
+    prml2 export --checkpoint runs/edge/best.pt --out out/prml2_edge_opt.onnx --optimize
     prml2 export --checkpoint old_all_rows.onnx --out prml2_stream.onnx     # re-export an exported model
 
 The graph has a fixed input ``onboard`` float32 (1, L, 9) in raw SI units and outputs ``z_mean``,
@@ -11,9 +13,16 @@ The graph has a fixed input ``onboard`` float32 (1, L, 9) in raw SI units and ou
 R = ``--rows`` decoder steps: 1 by default, the one the streaming runtime consumes (the last decoder
 layer then computes a single query row), ``--rows all`` for every one of the L - H; the metadata
 (``prml2_edge.model_meta``) is embedded. Every export is checked against torch on at least 100
-windows (max abs difference <= 1e-4). ``--int8`` applies onnxruntime dynamic quantisation and
-prints the z RMSE of the fp32 and int8 graphs on validation windows (needs ``--data``); the fp32
-graph is kept beside it as ``<name>.fp32.onnx``.
+windows (max abs difference <= 1e-4). ``--int8`` (or ``--int8 dynamic``) applies onnxruntime dynamic
+quantisation, ``--int8 static`` static QDQ quantisation calibrated on windows of simulated drives
+(the project's simulator, ``--calibration-windows``; never the dataset); both print the z RMSE of
+the fp32 and int8 graphs on validation windows (needs ``--data``). ``--optimize`` fuses each
+attention into one ``com.microsoft.MultiHeadAttention`` node (``prml2_edge.training.fusion``; onnxruntime's
+offline transformer optimiser fuses none of them, and its other fusions measured slower than the ones
+onnxruntime applies by itself), prints the fusions that applied and the largest difference from the
+fp32 graph; with ``--int8`` (dynamic) the fused graph is then quantised (kept
+beside it as ``<name>.opt.onnx``). The fp32 graph is kept beside a variant as ``<name>.fp32.onnx``.
+Every variant runs on the edge install (onnxruntime only).
 """
 
 from __future__ import annotations
@@ -32,7 +41,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="checkpoint from prml2 train (best.pt), or a PRML2 .onnx file to re-export "
                              "(same weights and metadata; e.g. an older all-rows graph as a streaming one)")
     parser.add_argument("--out", required=True, metavar="ONNX", help="output .onnx file")
-    parser.add_argument("--int8", action="store_true", help="dynamic int8 quantisation (reports the accuracy change)")
+    parser.add_argument("--int8", nargs="?", const="dynamic", default=None, choices=("dynamic", "static"),
+                        help="int8 quantisation, dynamic (the default when no value is given) or static (QDQ, "
+                             "calibrated on simulated windows); reports the accuracy change")
+    parser.add_argument("--calibration-windows", type=int, default=256, metavar="N",
+                        help="simulated windows that calibrate --int8 static (default 256)")
+    parser.add_argument("--optimize", action="store_true",
+                        help="fuse each attention into one onnxruntime MultiHeadAttention node; prints which "
+                             "fusions applied (combines with --int8 dynamic)")
     parser.add_argument("--data", metavar="DIR",
                         help="dataset for parity and int8 accuracy windows (validation split); required with --int8")
     parser.add_argument("--rows", default="1", metavar="N|all",
@@ -101,6 +117,11 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--parity-windows must be at least 100, got {args.parity_windows}")
     if args.int8 and not args.data:
         raise ConfigError("--int8 needs --data DIR: the accuracy change is measured on its validation windows")
+    if args.int8 == "static" and args.optimize:
+        raise ConfigError("--optimize combines with --int8 dynamic only (static QDQ on the fused graph falls back "
+                          "to float kernels in onnxruntime)")
+    if args.int8 == "static" and args.calibration_windows < 1:
+        raise ConfigError(f"--calibration-windows must be at least 1, got {args.calibration_windows}")
     out = Path(args.out)
     if out.suffix != ".onnx":
         raise ConfigError(f"--out must end in .onnx, got {out.name}")
@@ -118,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
             load_model(args.checkpoint)
         meta = metadata_for(model, ckpt)
     rows = _rows(args.rows, model.cfg.window_len - model.cfg.encoder_len)
-    fp32_path = out.with_name(out.stem + ".fp32.onnx") if args.int8 else out
+    fp32_path = out.with_name(out.stem + ".fp32.onnx") if (args.int8 or args.optimize) else out
     export_onnx(model, meta, fp32_path, rows=rows)
     windows, z_dec = _windows(model, args.data, args.parity_windows)
     diff = parity(model, fp32_path, windows)
@@ -129,11 +150,30 @@ def run(args: argparse.Namespace) -> int:
     if not (diff["mean"] <= PARITY_TOL and diff["var"] <= PARITY_TOL):
         raise ModelError(f"onnxruntime output differs from torch by {max(diff['mean'], diff['var']):.2e}; "
                          "report this with the checkpoint")
+    source = fp32_path  # what --int8 quantises: the fp32 graph, or the fused one with --optimize
+    if args.optimize:
+        from prml2_edge.training.quantize import max_output_difference, optimize_transformer
+
+        opt_path = out.with_name(out.stem + ".opt.onnx") if args.int8 else out
+        fused = optimize_transformer(fp32_path, opt_path)
+        diff = max_output_difference(fp32_path, opt_path, windows)
+        applied = ", ".join(f"{k} {v}" for k, v in sorted(fused.items())) or "none"
+        print(f"optimised: {opt_path} ({opt_path.stat().st_size / 1e6:.2f} MB); fusions applied: {applied}; "
+              f"max |d mean| against the fp32 graph {diff['mean']:.2e}, max |d var| {diff['var']:.2e}")
+        source = opt_path
     if args.int8:
-        quantize_int8(fp32_path, out)
+        if args.int8 == "static":
+            from prml2_edge.training.quantize import quantize_static_int8, simulated_windows
+
+            calibration, _ = simulated_windows(args.calibration_windows, L=meta.L, H=meta.H)
+            quantize_static_int8(fp32_path, out, calibration)
+            how = f"static QDQ, calibrated on {len(calibration)} simulated windows"
+        else:
+            quantize_int8(source, out)
+            how = "dynamic" + (", on the optimised graph" if args.optimize else "")
         report = compare_int8(fp32_path, out, windows, z_dec)
-        print(f"int8: {out} ({out.stat().st_size / 1e6:.2f} MB); z RMSE on {report['n_windows']} validation "
-              "windows (before the guard), fp32 -> int8:")
+        print(f"int8 ({how}): {out} ({out.stat().st_size / 1e6:.2f} MB); z RMSE on {report['n_windows']} "
+              "validation windows (before the guard), fp32 -> int8:")
         for name in report["fp32"]:
             a, b = report["fp32"][name], report["int8"][name]
             print(f"  {name:<14} {a:.4f} -> {b:.4f}  ({100 * (b - a) / a:+.1f} %)")

@@ -99,7 +99,7 @@ def resolve_recipe(recipe: str | dict) -> dict:
     if isinstance(recipe, str):
         if recipe not in RECIPES:
             raise ConfigError(f"unknown recipe {recipe!r}; choose one of {', '.join(RECIPES)} or pass a dict")
-        return RECIPES[recipe]()
+        return resolve_recipe(RECIPES[recipe]())  # validated and completed like a dict (the small one has no vehicles)
     if not isinstance(recipe, dict) or not isinstance(recipe.get("drives"), list) or not recipe["drives"]:
         raise ConfigError("a recipe dict needs a non-empty 'drives' list")
     drives = []

@@ -52,3 +52,22 @@ def test_bench_table_and_bad_arguments(tmp_path):
     assert "kinematic-test-fp32-1t" in res.stdout and "e2e p50" in res.stdout and "GEMM" in res.stdout
     short = _bench("--model", str(model), "--seconds", "2")
     assert short.returncode == 1 and "too short" in short.stderr
+    bad = _bench("--model", str(model), "--chunk-s", "0")
+    assert bad.returncode == 1 and "--chunk-s > 0" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+
+
+def test_bench_measures_the_export_variants_side_by_side_with_their_accuracy(tmp_path):
+    model = make_kinematic_model(tmp_path / "kinematic.onnx")
+    res = _bench("--json", "--model", str(model), "--threads", "1", "--precision", "fp32,int8-static,fp32-opt",
+                 "--seconds", "7", "--warmup-steps", "5", "--no-gemm", "--accuracy-windows", "6",
+                 "--calibration-windows", "8")
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout)
+    names = [c["name"] for c in doc["configs"]]
+    assert names == ["kinematic-test-fp32-1t", "kinematic-test-int8-static-1t"]
+    fp32, static = doc["configs"]
+    assert fp32["accuracy"] is None
+    assert static["accuracy"]["n_windows"] == 6 and len(static["accuracy"]["relative_change"]) == 5
+    assert fp32["load_average"] == static["load_average"]  # one interleaved measurement, not two runs
+    # the optimiser needs a transformer's metadata (heads, width): this closed-form graph is skipped, with a note
+    assert any("fp32-opt" in n and "skipped" in n for n in doc["notes"])

@@ -208,3 +208,110 @@ def test_streaming_graph_gives_the_full_graphs_trajectory(trained, tmp_path):
     np.testing.assert_allclose(trajs[2], trajs[0], atol=1e-4)
     np.testing.assert_allclose(trajs[3], trajs[1], atol=1e-4)
     assert not np.allclose(trajs[0][-1], trajs[1][-1])  # the strides differ: the check can see a difference
+
+
+def test_static_int8_graph_is_quantised_runs_in_the_runtime_and_agrees_with_fp32(trained, tmp_path):
+    """``--int8 static``'s recipe: QDQ nodes calibrated on simulated windows; the runtime's OnnxModel runs it."""
+    from prml2_edge.runtime.inference import OnnxModel
+    from prml2_edge.training.quantize import quantize_static_int8, simulated_windows, z_rmse_change
+
+    model, ckpt, _ = trained
+    fp32 = export_onnx(model, metadata_for(model, ckpt), tmp_path / "m.onnx", rows=1)
+    calibration, _ = simulated_windows(16)
+    assert calibration.shape == (16, schema.WINDOW_LEN, schema.NUM_SIGNALS) and np.isfinite(calibration).all()
+    q = quantize_static_int8(fp32, tmp_path / "m_s8.onnx", calibration)
+    ops = [n.op_type for n in onnx.load(str(q)).graph.node]
+    assert ops.count("QuantizeLinear") >= 4 and ops.count("DequantizeLinear") >= 4  # really quantised
+    training = read_metadata(q).training
+    assert training["int8"] is True and training["variant"] == "static-qdq-u8"
+    assert training["calibration"]["windows"] == 16
+    windows, z = simulated_windows(12, seed=8000)
+    a, b = OnnxModel(fp32), OnnxModel(q)
+    spread = []
+    for w in windows:
+        assert a.step(w[None]).name == b.step(w[None]).name == "SUCCESS"
+        np.testing.assert_allclose(b.mean, a.mean, atol=0.05 * NORM_STD[0])  # int8 rounding, not a different model
+        spread.append(a.mean[0].copy())  # OnnxModel reuses its output buffer
+    assert np.ptp(np.asarray(spread)[:, 0]) > 0.05 * NORM_STD[0]  # the windows differ more than the tolerance
+    change = z_rmse_change(fp32, q, windows, z)
+    assert change["n_windows"] == 12 and set(change["relative_change"]) == set(schema.STATE_NAMES)
+
+
+def test_optimized_graph_has_fused_ops_and_the_fp32_numbers(trained, tmp_path):
+    from prml2_edge.runtime.inference import OnnxModel
+    from prml2_edge.training.quantize import max_output_difference, optimize_transformer
+
+    model, ckpt, _ = trained
+    fp32 = export_onnx(model, metadata_for(model, ckpt), tmp_path / "m.onnx", rows=1)
+    fused = optimize_transformer(fp32, tmp_path / "m_opt.onnx", attention=False, ort_fusions=True)
+    assert fused.get("SkipLayerNormalization", 0) > 0 and fused["ort_Attention"] == 0  # its attention fusion: none
+    domains = {n.domain for n in onnx.load(str(tmp_path / "m_opt.onnx")).graph.node}
+    assert "com.microsoft" in domains
+    assert read_metadata(tmp_path / "m_opt.onnx").training["fusions"] == fused
+    diff = max_output_difference(fp32, tmp_path / "m_opt.onnx", _windows(20, seed=6))
+    assert diff["mean"] <= 1e-4 and diff["var"] <= 1e-4, diff
+    assert OnnxModel(tmp_path / "m_opt.onnx").step(_windows(1)).name == "SUCCESS"
+
+
+def test_cli_export_optimize_and_static_int8_options(trained, tmp_path, capsys):
+    _, _, ckpt_path = trained
+    out = tmp_path / "opt.onnx"
+    assert main(["export", "--checkpoint", str(ckpt_path), "--out", str(out), "--optimize"]) == 0
+    text = capsys.readouterr().out
+    assert "fusions applied: " in text and (tmp_path / "opt.fp32.onnx").is_file()
+    assert read_metadata(out).training["variant"] == "optimized"
+    assert "MultiHeadAttention" in text
+    for bad, message in ((["--int8", "static"], "--int8 needs --data"),
+                         (["--int8", "static", "--data", "d", "--optimize"], "combines with --int8 dynamic only")):
+        assert main(["export", "--checkpoint", str(ckpt_path), "--out", str(tmp_path / "x.onnx"), *bad]) == 1
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1
+    with pytest.raises(SystemExit):  # argparse's own usage error
+        main(["export", "--checkpoint", str(ckpt_path), "--out", str(tmp_path / "x.onnx"), "--int8", "dense"])
+    assert "invalid choice: 'dense'" in capsys.readouterr().err
+
+
+def test_attention_fusion_replaces_every_attention_and_keeps_the_numbers(trained, tmp_path):
+    """The project's pass: each exported attention chain -> one MultiHeadAttention; dynamic int8 on top runs."""
+    from prml2_edge.runtime.inference import OnnxModel
+    from prml2_edge.training.fusion import fuse_attention
+    from prml2_edge.training.quantize import max_output_difference, optimize_transformer, quantize_prml2
+
+    model, ckpt, _ = trained
+    fp32 = export_onnx(model, metadata_for(model, ckpt), tmp_path / "m.onnx", rows=1)
+    proto = onnx.load(str(fp32))
+    n_attn = 3 * PRESET.model.n_layers  # encoder self, decoder self and cross attention per layer
+    assert [n.op_type for n in proto.graph.node].count("Softmax") == n_attn
+    assert fuse_attention(proto) == n_attn
+    ops = [n.op_type for n in proto.graph.node]
+    assert "Softmax" not in ops and ops.count("MultiHeadAttention") == n_attn
+    assert fuse_attention(proto) == 0  # nothing left to match
+    fused = optimize_transformer(fp32, tmp_path / "opt.onnx")
+    assert fused == {"MultiHeadAttention": n_attn}
+    assert read_metadata(tmp_path / "opt.onnx").training["variant"] == "optimized"
+    diff = max_output_difference(fp32, tmp_path / "opt.onnx", _windows(20, seed=7))
+    assert diff["mean"] <= 1e-4 and diff["var"] <= 1e-4, diff
+    q = quantize_prml2(tmp_path / "opt.onnx", tmp_path / "opt8.onnx")
+    assert "MatMulInteger" in {n.op_type for n in onnx.load(str(q)).graph.node}  # ORT fuses it at load time
+    a, b = OnnxModel(fp32), OnnxModel(q)
+    w = _windows(1, seed=8)
+    assert a.step(w).name == b.step(w).name == "SUCCESS"
+    np.testing.assert_allclose(b.mean, a.mean, atol=0.05 * NORM_STD[0])
+
+
+def test_cli_export_optimize_with_int8_quantises_the_fused_graph(trained, tmp_path, capsys):
+    from prml2_edge.data.datasets import generate_dataset
+
+    _, _, ckpt_path = trained
+    data = tmp_path / "data"
+    generate_dataset(data, {"name": "export-tiny", "drives": [  # short drives: a few validation windows
+        {"name": "dry_a", "family": "mixed", "mu": 1.0, "seed": 5, "minutes": 1.5}]}, workers=1, progress=False)
+    out = tmp_path / "o8.onnx"
+    assert main(["export", "--checkpoint", str(ckpt_path), "--out", str(out), "--optimize", "--int8",
+                 "--data", str(data)]) == 0
+    text = capsys.readouterr().out
+    assert "fusions applied: " in text and "int8 (dynamic, on the optimised graph)" in text
+    ops = {n.op_type for n in onnx.load(str(out)).graph.node}
+    assert {"MultiHeadAttention", "MatMulInteger"} <= ops
+    assert (tmp_path / "o8.opt.onnx").is_file() and (tmp_path / "o8.fp32.onnx").is_file()
+    assert read_metadata(out).training["int8"] is True
