@@ -72,6 +72,7 @@ class GnssCheck:
         self._agree = 0
         self._suspect_hist: collections.deque[_Entry] = collections.deque()
         self._trusted = 0  # fixes trusted since the start (the check arms after arm_fixes)
+        self._psi_std0 = 0.0  # the filter's heading uncertainty when the suspicion began [rad]
         self.last_discrepancy_m = 0.0
 
     def step(self, x_m: float, y_m: float) -> None:
@@ -125,6 +126,7 @@ class GnssCheck:
                 self.fixes_refused += 1
                 self._suspect_hist.clear()
                 self._suspect_hist.append(entry)
+                self._psi_std0 = old.psi_std
                 self.reason = (f"GNSS suspect: the fixes moved {disc:.1f} m away from the wheels' and gyro's track "
                                f"over {t - t_old:.1f} s (allowed {tol:.1f} m); not fused while they disagree")
                 if self.first_reason is None:
@@ -146,6 +148,9 @@ class GnssCheck:
         while len(sh) > 1 and t - sh[1].t >= cfg.baseline_s:
             sh.popleft()
         agree = False
+        # the heading uncertainty as it was when the suspicion began: dead-reckoning without GNSS grows it, and a
+        # tolerance growing with it would let a steady walk through
+        entry.psi_std = min(entry.psi_std, self._psi_std0)
         if t - sh[0].t >= cfg.baseline_s - 0.5:
             disc, tol, _ = self._disc(sh, entry.fix)
             self.last_discrepancy_m = disc
