@@ -136,6 +136,7 @@ class FrameDecoder:
 
     def __init__(self, signal_map: SignalMap, db: cantools.database.can.Database, max_counter_jump: int = 7) -> None:
         self.max_counter_jump = max_counter_jump
+        self.last_evidence_t = -math.inf  # newest evidence of a second sender on any message [s]
         self.plans: dict[int, _MessagePlan] = {}
         for spec in signal_map.present:
             plan = self._plan(signal_map, db, spec.message)
@@ -198,14 +199,18 @@ class FrameDecoder:
                 return DecodedFrame(FrameStatus.REJECTED_CHECKSUM, t_s, plan.name)
         gap = False
         mon = plan.injection
+        status = FrameStatus.USED
         if mon is not None:
             mon.rate(t_s, bytes(data))
         if plan.counter is not None:
             status, gap = self._counter(plan, int(decoded[plan.counter]), t_s)
-            if status is not FrameStatus.USED:
-                return DecodedFrame(status, t_s, plan.name, injection=mon is not None and mon.suspected(t_s))
-        out = DecodedFrame(FrameStatus.USED, t_s, plan.name, counter_gap=gap,
-                           injection=mon is not None and mon.suspected(t_s))
+        suspected = False
+        if mon is not None:
+            self.last_evidence_t = max(self.last_evidence_t, mon.evidence_t)
+            suspected = mon.suspected(t_s)
+        if status is not FrameStatus.USED:
+            return DecodedFrame(status, t_s, plan.name, injection=suspected)
+        out = DecodedFrame(FrameStatus.USED, t_s, plan.name, counter_gap=gap, injection=suspected)
         n_out_of_range = n_nonfinite = n_invalid = 0
         for sp in plan.signals:
             physical = decoded[sp.signal] if sp.parts is None else sum(decoded[p] * w for p, w in sp.parts)
@@ -285,6 +290,14 @@ class FrameDecoder:
                               "observed_hz": mon.observed_hz or None,
                               "declared_hz": mon.rate_hz, "intruder_frames_rejected": mon.intruder_frames}
         return out
+
+    def suspicion_possible(self, t_s: float) -> bool:
+        """Cheap: could any message be suspected of injection at ``t_s``? (evidence within ``CLEAR_S``)"""
+        return t_s - self.last_evidence_t <= CLEAR_S
+
+    def episodes(self) -> int:
+        """Suspicion episodes so far, over every message."""
+        return sum(p.injection.episodes for p in self.plans.values() if p.injection is not None)
 
     def untrusted_signals(self, t_s: float) -> dict[int, str]:
         """``{canonical index: reason}`` for signals of messages suspected of injection that have no counter to

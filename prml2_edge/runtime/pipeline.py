@@ -111,7 +111,7 @@ class Pipeline:
                  plausibility: Plausibility | None = None) -> None:
         self.signal_map = signal_map
         self.plausibility = plausibility
-        self._suspicion = False  # some message is suspected of injection (decode.InjectionMonitor)
+        self._episodes_warned = 0  # injection suspicions already warned about (decode.InjectionMonitor)
         self.decoder = decoder
         self.assembler = assembler
         self.localizer = localizer
@@ -203,12 +203,6 @@ class Pipeline:
         recv_ns = t0 if recv_ns is None else recv_ns
         outs = self._gnss_due(float(msg.timestamp), recv_ns) if self.gnss_sources else []
         frame = self.decoder.step(msg)
-        if frame.injection and not self._suspicion:
-            self._suspicion = True
-            log.warning("injection suspected on %s at t=%.2f s: a second sender on the bus (rate or counter sequence)",
-                        ", ".join(self.decoder.suspected_messages(frame.t_s)), frame.t_s)
-        elif self._suspicion and not frame.injection and frame.message is not None:
-            self._suspicion = bool(self.decoder.suspected_messages(frame.t_s))
         t1 = time.perf_counter_ns()
         status, rows = self.assembler.step(frame, recv_ns)
         t2 = time.perf_counter_ns()
@@ -228,7 +222,16 @@ class Pipeline:
         if self.plausibility is None:
             return row
         t0 = time.perf_counter_ns()
-        row = self.plausibility.check(row, self.decoder.untrusted_signals(row.t_s) if self._suspicion else None)
+        decoder = self.decoder
+        untrusted = None
+        if decoder.suspicion_possible(row.t_s):  # (streaming and offline alike pass here, in row order)
+            episodes = decoder.episodes()
+            if episodes > self._episodes_warned:
+                self._episodes_warned = episodes
+                log.warning("injection suspected on %s at t=%.2f s: a second sender on the bus (rate or counter "
+                            "sequence)", ", ".join(decoder.suspected_messages(row.t_s)), row.t_s)
+            untrusted = decoder.untrusted_signals(row.t_s)
+        row = self.plausibility.check(row, untrusted)
         self.latency.add("plausibility", time.perf_counter_ns() - t0)
         for i in row.newly_flagged:
             log.warning("%s taken out at t=%.2f s: %s", schema.SIGNAL_NAMES[i], row.t_s,
@@ -377,7 +380,7 @@ class Pipeline:
         if out is not None:
             invalid = [schema.SIGNALS[i].symbol for i in np.flatnonzero(~out.valid)]
             parts.append("invalid: " + (",".join(invalid) if invalid else "none"))
-            suspected = self.decoder.suspected_messages(out.t_s) if self._suspicion else []
+            suspected = self.decoder.suspected_messages(out.t_s) if self.decoder.suspicion_possible(out.t_s) else []
             if suspected:
                 parts.append("INJECTION SUSPECTED " + ", ".join(suspected))
             if self.plausibility is not None:

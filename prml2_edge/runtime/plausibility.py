@@ -191,7 +191,6 @@ class _Check:
     under_s: float = 0.0  # time below half the tolerance (while flagged)
     flagged: bool = False
     reason: str = ""
-    since_t: float = math.nan
     # stuck check: time the value last changed and the span of the prediction since
     last_value: float = math.nan
     changed_t: float = -math.inf
@@ -296,12 +295,9 @@ class Plausibility:
         valid = row.valid.tolist()
         if row.discontinuity:
             self._restart()
-        if untrusted:
-            for i, why in untrusted.items():
-                valid[i] = False
-                self.untrusted[i] = why
-        elif self.untrusted:
-            self.untrusted.clear()
+        self.untrusted = dict(untrusted) if untrusted else {}
+        for i in self.untrusted:
+            valid[i] = False
         pred, newly = self._step(x, valid, row.t_s)
         new_valid = list(valid)
         subst = [False] * N
@@ -313,8 +309,6 @@ class Plausibility:
             if c.flagged and not self.absent[i]:
                 new_valid[i] = False
                 self.flag_rows[i] += 1
-        for i in self.untrusted:
-            new_valid[i] = False
         out = [i for i in range(N) if not new_valid[i] and not self.absent[i]]
         # replace only while enough of the car is left to predict from: a signal never received is a map
         # mistake (the runtime says so), and with most of the bus gone there is nothing to predict from
@@ -325,7 +319,7 @@ class Plausibility:
                     x[i] = pred[i]
                     subst[i] = True
                     self.substituted_rows[i] += 1
-        if not any(subst) and not newly and new_valid == valid:
+        if not any(subst) and not newly and new_valid == row.valid.tolist():
             return row
         return replace(row, values=np.asarray(x), valid=np.asarray(new_valid, dtype=bool),
                        substituted=np.asarray(subst, dtype=bool), newly_flagged=tuple(newly))
@@ -483,8 +477,6 @@ class Plausibility:
                           + (sd_ref + cfg.lead_steer_s * rate) * g)
             resid[s] = x[s] - pred[s]  # type: ignore[operator]
         self._omega = omega
-        self.last_estimates = sources_ok
-        self.last_tol = tol
         # learning the rotation relations from the gyro, while everything involved agrees
         # the gyro teaches the other relations only while it agrees with them (a fault not yet flagged must not
         # pull them along)
@@ -564,7 +556,6 @@ class Plausibility:
                 dropout = xi == 0.0 and abs(r) > cfg.dropout_tol * ti
                 if c.over_s >= cfg.confirm_s or stuck or dropout:
                     c.flagged = True
-                    c.since_t = t
                     c.under_s = 0.0
                     c.reason = self._reason(i, xi, pred[i], c, stuck, t)
                     newly.append(i)

@@ -93,12 +93,5 @@ class AssembledRow:
     newly_flagged: tuple[int, ...] = ()  # signals the cross-checks flagged at this row
 
     @property
-    def model_ok(self) -> bool:
-        """Every signal valid or replaced by a substitute: the model can run on this row."""
-        if self.substituted is None:
-            return bool(self.valid.all())
-        return bool((self.valid | self.substituted).all())
-
-    @property
     def all_valid(self) -> bool:
         return bool(self.valid.all())
