@@ -112,7 +112,8 @@ class PoseFilter:
     # ---- one step -----------------------------------------------------------------------------------
 
     def step(self, values: np.ndarray, valid: np.ndarray, t_s: float, est: Estimate,
-             fix: GnssFix | None) -> FilterStep:
+             fix: GnssFix | None, substituted: np.ndarray | None = None,
+             substitute_std: np.ndarray | None = None) -> FilterStep:
         if self.ekf is None or (fix is not None and not self._confirmed and not self._plausible(fix, values, valid)):
             return self._try_start(values, valid, t_s, fix)
         still = self.calibrated and self._still(values, valid, t_s)
@@ -123,7 +124,7 @@ class PoseFilter:
         model_used = ekf_status is StepStatus.SUCCESS
         cues = standstill = False
         if self.calibrated:
-            cues = self._cues(values, valid)
+            cues = self._cues(values, valid, substituted, substitute_std)
             standstill = still and self._zero_velocity()
             self._odometry(values, valid)
         pos = self.ekf.x[EkfState.POS]
@@ -199,11 +200,35 @@ class PoseFilter:
             self._yaw_steps.clear()
             self._yaw_cue_var = self._yaw_var()
 
-    def _cues(self, values: np.ndarray, valid: np.ndarray) -> bool:
+    def correct_yaw_cue(self, offset: float, std: float, t_from: float, t_now: float) -> None:
+        """The CAN yaw rate read ``offset`` [rad/s] too much from ``t_from`` on (an offset jump the plausibility
+        stage measured at its step, ``std`` its uncertainty): the heading and yaw rate integrated from it since
+        are taken back, times :attr:`LocalizerConfig.offset_retro_gain` (the cue's share of the yaw rate)."""
+        if self.ekf is None or not self.calibrated:
+            return
+        g = self.config.offset_retro_gain
+        dt = max(t_now - t_from, 0.0)
+        x = self.ekf.x.copy()
+        x[EkfState.YAW] -= g * offset * dt
+        x[EkfState.OMEGA_Z] -= g * offset
+        self.ekf.x = x
+        p = self.ekf.P.copy()
+        p[EkfState.YAW, EkfState.YAW] += (std * dt) ** 2
+        self.ekf.P = p
+
+    def _cues(self, values: np.ndarray, valid: np.ndarray, substituted: np.ndarray | None = None,
+              substitute_std: np.ndarray | None = None) -> bool:
         cfg = self.config
         yaw = float(values[_YAW_RATE]) if valid[_YAW_RATE] else None
+        yaw_var = self._yaw_cue_var
         if yaw is not None:
             self._track_resolution(yaw)
+        elif cfg.substitute_yaw_cue and substituted is not None and substituted[_YAW_RATE] \
+                and substitute_std is not None and math.isfinite(substitute_std[_YAW_RATE]):
+            # the plausibility stage's substitute (the gyro less an offset jump, or the others' rotation), with
+            # its own uncertainty on top
+            yaw = float(values[_YAW_RATE])
+            yaw_var = yaw_var + float(substitute_std[_YAW_RATE]) ** 2
         wheel = None
         if valid[_REAR].all():
             w = float(np.mean(values[_REAR]))
@@ -211,7 +236,7 @@ class PoseFilter:
                 wheel = w
         if yaw is None and wheel is None:
             return False
-        status = self.ekf.update_cues(yaw, self._yaw_cue_var, wheel,  # type: ignore[union-attr]
+        status = self.ekf.update_cues(yaw, yaw_var, wheel,  # type: ignore[union-attr]
                                       cfg.wheel_cue_std_mps ** 2)
         return status is StepStatus.SUCCESS
 

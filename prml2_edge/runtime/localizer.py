@@ -72,6 +72,8 @@ class LocalizerConfig:
     yaw_cue_std_radps: float = 0.1 * schema.DEG_TO_RAD
     yaw_cue_quant_gain: float = 12.0
     yaw_cue_resolution_radps: float = 1.28 * schema.DEG_TO_RAD
+    substitute_yaw_cue: bool = True  # a substituted yaw rate (plausibility stage) is a cue, with its uncertainty
+    offset_retro_gain: float = 0.6  # share of an offset jump's heading taken back when it is found (filter.py)
     wheel_cue_std_mps: float = 0.05  # rear-axle mean speed: 0.05 km/h quantisation, slip, v_y and lever arms
     cue_min_speed_mps: float = 1.0  # below this the ABS sensors read 0: no wheel-speed cue
     # wheel scale from GNSS: wheel distance over GNSS distance on baselines this long, above this speed
@@ -269,8 +271,8 @@ class StreamingLocalizer:
         return self.filter.calibration()
 
     def step(self, values: np.ndarray, valid: np.ndarray, t_s: float, gnss: GnssFix | None = None,
-             discontinuity: bool = False, bus_silent: bool = False, substituted: np.ndarray | None = None
-             ) -> StepOutput:
+             discontinuity: bool = False, bus_silent: bool = False, substituted: np.ndarray | None = None,
+             substitute_std: np.ndarray | None = None) -> StepOutput:
         """Consume one 50 Hz row: ``values`` (9,) SI canonical order, ``valid`` (9,) bool, at ``t_s`` [s].
 
         ``bus_silent`` (the assembler's flag) is passed through to the output. ``substituted`` (9,) bool marks
@@ -283,7 +285,7 @@ class StreamingLocalizer:
         est = self.estimator.step(values, model_ok, discontinuity)
         fix = gnss if (gnss is not None and gnss.valid and self.config.fuse_gnss) else None
         t_filter = time.perf_counter_ns()
-        res = self.filter.step(values, valid, t_s, est, fix)
+        res = self.filter.step(values, valid, t_s, est, fix, substituted, substitute_std)
         filter_ns = time.perf_counter_ns() - t_filter
         out = self._output(t_s, res.ekf_status, est, res.model_used, res.gnss_fused, valid, all_valid,
                            res.standstill)

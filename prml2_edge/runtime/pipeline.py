@@ -30,6 +30,7 @@ from prml2_edge.runtime.inference import OnnxModel, default_model_path
 from prml2_edge.runtime.initial_pose import InitialPose
 from prml2_edge.runtime.latency import LatencyRecorder
 from prml2_edge.runtime.localizer import LocalizerConfig, StepOutput, StreamingLocalizer
+from prml2_edge.runtime.plausibility import YAW as _YAW_RATE
 from prml2_edge.runtime.plausibility import Plausibility, PlausibilityConfig
 from prml2_edge.runtime.rows import AssembledRow
 from prml2_edge.runtime.stats import FrameStats
@@ -299,8 +300,11 @@ class Pipeline:
         self.invalid_rows += ~row.valid
         if not self._warned_missing.all():
             self._warn_missing(row.t_s)
+        for i, offset, std, t_step in row.offset_jumps:
+            if i == _YAW_RATE:
+                self.localizer.filter.correct_yaw_cue(offset, std, t_step, row.t_s)
         out = self.localizer.step(row.values, row.valid, row.t_s, row.gnss, row.discontinuity, row.bus_silent,
-                                  row.substituted)
+                                  row.substituted, row.substitute_std)
         out.substituted = row.substituted
         if out.degraded or out.reasons:
             out.reasons = {**(out.reasons or {}), **self._reasons(row)}

@@ -43,7 +43,8 @@ and the status line names the signal and the reason. Checks run above
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from collections import deque
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -107,6 +108,26 @@ class PlausibilityConfig:
     stuck_res_steps: float = 5.0  # ... while the smoothed prediction moved by this many resolution steps ...
     stuck_span_tol: float = 0.5  # ... plus this many absolute tolerances
     substitute_stale: bool = True  # a stale signal (message stopped) gets the others' prediction too
+    substitute_bias_tau_s: float = 30.0  # the yaw-rate substitute carries the gyro's mean difference to the others
+    substitute_yaw_std_radps: float = 0.5 * _DEG  # uncertainty of the others' yaw rate (the filter's cue from it)
+    # offset jumps of the yaw rate, a_y and steering: a step in the signal's own first difference (beyond
+    # jump_noise_gain times its usual innovation) that the residual follows (its mean over jump_after_s, from
+    # jump_lag_s after the step, moved by the step within jump_match of it, against jump_before_s before)
+    jump_noise_gain: float = 6.0
+    jump_lag_s: float = 0.1  # yaw rate (the motion cannot step: the others follow a real change within 0.1 s) ...
+    jump_lag_ay_s: float = 0.3  # ... a_y and the steering: the car's response to a steering step settles first
+    jump_lag_steer_s: float = 0.5
+    jump_after_s: float = 0.3
+    jump_before_s: float = 0.5
+    jump_match: float = 0.3
+    jump_others_still: float = 0.5  # steering: the others' prediction moved by less than this part of the step
+    jump_sharp: float = 0.25  # the differences next to the step stay within this part of it
+    jump_steady: float = 0.15  # the residual before and after the step varies by at most this part of it
+    jump_drop_s: float = 0.5  # the value less the offset worse than the value itself this long: the correction ends
+    jump_min_yaw_radps: float = 1.0 * _DEG  # smallest offset jump looked for (a real step of the motion is smaller)
+    jump_min_ay_mps2: float = 0.7
+    jump_min_steer_rad: float = 7.0 * _DEG
+    jump_steer_max_ay_mps2: float = 5.0
     max_substituted: int = 3  # at most this many signals replaced at once (a whole ESP message is two)
 
 
@@ -175,6 +196,20 @@ def _weighted_median(items: list[tuple[float, float]]) -> tuple[float, float]:
     return items[-1]
 
 
+def _mean_at(pts: list[tuple[int, float]]) -> float:
+    return sum(v for _, v in pts) / len(pts)
+
+
+def _trend_at(pts: list[tuple[int, float]], k: float) -> float:
+    """The straight line through ``(row, value)`` points (least squares), at row ``k``."""
+    n = len(pts)
+    km = sum(a for a, _ in pts) / n
+    vm = sum(v for _, v in pts) / n
+    sxx = sum((a - km) ** 2 for a, _ in pts)
+    b = sum((a - km) * (v - vm) for a, v in pts) / sxx if sxx > 0 else 0.0
+    return vm + b * (k - km)
+
+
 def _median(xs: list[float]) -> float:
     s = sorted(xs)
     n = len(s)
@@ -197,6 +232,24 @@ class _Check:
     pred_lo: float = math.inf
     pred_hi: float = -math.inf
     resolution: float = math.inf  # smallest change seen
+    offset: float = 0.0  # an offset jump measured at its step (the substitute is the value less it)
+    offset_std: float = 0.0
+    offset_resid: float = 0.0  # smoothed residual of the corrected value
+    offset_over_s: float = 0.0
+
+
+@dataclass
+class _Jump:
+    """Step detector of one signal: its first differences, their usual innovation, the raw residuals."""
+
+    last_x: float = math.nan
+    d1: deque = field(default_factory=lambda: deque(maxlen=6))
+    noise: float = 0.0  # EMA of |first difference - local slope|
+    noise_n: int = 0
+    resid: deque = field(default_factory=lambda: deque(maxlen=96))  # (row number, raw residual)
+    values: deque = field(default_factory=lambda: deque(maxlen=64))  # (row number, value)
+    n: int = 0
+    cand: list | None = None  # [row number, t, step, pre-step differences, post-step differences, S]
 
 
 SIGNAL_UNITS = {VS: ("m/s", 1.0), SW: ("deg", 1 / _DEG), YAW: ("deg/s", 1 / _DEG), AY: ("m/s^2", 1.0),
@@ -235,6 +288,11 @@ class Plausibility:
         forget = 1.0 - dt / cfg.learn_tau_s
         self._alpha = [dt / (cfg.smooth_rot_s if i in (YAW, AY, SW) else cfg.smooth_s) for i in range(N)]
         self.checks = [_Check() for _ in range(N)]
+        self.jumps = {i: _Jump() for i in (YAW, AY, SW)}
+        self._jump_rows = {i: (int(round(lag / dt)), int(round(cfg.jump_after_s / dt)),
+                               int(round(cfg.jump_before_s / dt)))
+                           for i, lag in ((YAW, cfg.jump_lag_s), (AY, cfg.jump_lag_ay_s), (SW, cfg.jump_lag_steer_s))}
+        self._jump_min = {YAW: cfg.jump_min_yaw_radps, AY: cfg.jump_min_ay_mps2, SW: cfg.jump_min_steer_rad}
         h2 = 2.0 * cfg.half_track_m
         # wheel pairs: right - left = track * omega + eps * v
         self.rear = _Rls([h2, 0.0], [0.2, 0.02], forget)
@@ -243,6 +301,11 @@ class Plausibility:
         self.steer = _Rls([0.0, cfg.steering_ratio * 2.7, cfg.steering_ratio * 0.002],
                           [0.05, 20.0, 0.05], forget)
         self.ay_offset = _Ema(dt / 20.0)
+        # each rotation estimate's mean difference to the gyro and its variance about it, while the gyro is calm: the
+        # yaw-rate substitute is their inverse-variance mean, each less its bias
+        a_sub = dt / cfg.substitute_bias_tau_s
+        self.src_bias = {s_: _Ema(a_sub) for s_ in (RL, FL, AY, SW)}
+        self.src_var = {s_: _Ema(a_sub, (1.0 * _DEG) ** 2) for s_ in (RL, FL, AY, SW)}
         self.speedo_factor = _Ema(dt / 20.0, 1.04)
         self.wheel_ratio = [_Ema(dt / 30.0, 1.0) for _ in range(4)]
         self.brake_idle = _Ema(dt / 5.0, 0.0)
@@ -268,6 +331,7 @@ class Plausibility:
         self.first_flag: list[tuple[float, str] | None] = [None] * N
         self._seen = [False] * N  # a valid value has arrived
         self.untrusted: dict[int, str] = {}  # signals taken out because their message is under attack
+        self.offsets_found: list[tuple[int, float, float, float]] = []
 
     def _restart(self) -> None:
         """After a gap in the stream: the transient state starts again (learned relations and flags stay)."""
@@ -281,6 +345,12 @@ class Plausibility:
             c.resid = c.over_s = 0.0
             c.changed_t = -math.inf
             c.pred_lo, c.pred_hi = math.inf, -math.inf
+        for j in self.jumps.values():
+            j.last_x = math.nan
+            j.d1.clear()
+            j.resid.clear()
+            j.values.clear()
+            j.cand = None
 
     # ---- one row --------------------------------------------------------------------------------------
 
@@ -298,6 +368,7 @@ class Plausibility:
         self.untrusted = dict(untrusted) if untrusted else {}
         for i in self.untrusted:
             valid[i] = False
+        self.offsets_found: list[tuple[int, float, float, float]] = []
         pred, newly = self._step(x, valid, row.t_s)
         new_valid = list(valid)
         subst = [False] * N
@@ -312,17 +383,29 @@ class Plausibility:
         out = [i for i in range(N) if not new_valid[i] and not self.absent[i]]
         # replace only while enough of the car is left to predict from: a signal never received is a map
         # mistake (the runtime says so), and with most of the bus gone there is nothing to predict from
+        std = [math.nan] * N
         if 0 < len(out) <= self.config.max_substituted:
+            raw_valid = row.valid
             for i in out:
-                if seen[i] and (self.checks[i].flagged or i in self.untrusted or self.config.substitute_stale) \
-                        and pred[i] is not None:
-                    x[i] = pred[i]
-                    subst[i] = True
-                    self.substituted_rows[i] += 1
-        if not any(subst) and not newly and new_valid == row.valid.tolist():
+                c = self.checks[i]
+                if not seen[i]:
+                    continue
+                if c.flagged and c.offset and raw_valid[i] and i not in self.untrusted:
+                    x[i] -= c.offset  # an offset jump: the value less it
+                    std[i] = c.offset_std
+                elif (c.flagged or i in self.untrusted or self.config.substitute_stale) and pred[i] is not None:
+                    x[i] = self._sub.get(i, pred[i])
+                    std[i] = self._sub_std.get(i, math.nan)
+                else:
+                    continue
+                subst[i] = True
+                self.substituted_rows[i] += 1
+        if not any(subst) and not newly and not self.offsets_found and new_valid == row.valid.tolist():
             return row
         return replace(row, values=np.asarray(x), valid=np.asarray(new_valid, dtype=bool),
-                       substituted=np.asarray(subst, dtype=bool), newly_flagged=tuple(newly))
+                       substituted=np.asarray(subst, dtype=bool), newly_flagged=tuple(newly),
+                       substitute_std=np.asarray(std) if any(subst) else None,
+                       offset_jumps=tuple(self.offsets_found))
 
     def _ok(self, i: int, valid: list[bool]) -> bool:
         return valid[i] and not self.checks[i].flagged
@@ -331,6 +414,8 @@ class Plausibility:
         cfg = self.config
         dt = self.dt_s
         pred: list[float | None] = [None] * N
+        self._sub: dict[int, float] = {}  # substitutes other than the prediction checked against
+        self._sub_std: dict[int, float] = {YAW: cfg.substitute_yaw_std_radps}
         tol = [math.inf] * N
         resid: list[float | None] = [None] * N
         h = cfg.half_track_m
@@ -402,7 +487,7 @@ class Plausibility:
         sd: dict[int, float] = {}  # and its uncertainty [rad/s]
         env = self._rate_env
         if valid[YAW]:
-            est[YAW] = x[YAW]
+            est[YAW] = x[YAW] - self.checks[YAW].offset
             sd[YAW] = 0.3 * _DEG + 0.5 * self._resolution(YAW) + cfg.lag_yaw_s * env
         if v >= 1.0:  # (the checks need `moving`; below it the estimates still feed the substitutes)
             if grip and calm_w[2] and calm_w[3] and self.rear.n * dt >= cfg.warmup_s:
@@ -410,12 +495,12 @@ class Plausibility:
             if grip and calm_w[0] and calm_w[1] and self.front.n * dt >= cfg.warmup_s:
                 est[FL] = (x[FR] - x[FL] - self.front.theta[1] * v) / (self.front.theta[0] * cos_front)
             if valid[AY] and self.moving_s >= cfg.warmup_s and v >= 3.0:
-                est[AY] = (x[AY] - self.ay_offset.value) / v
+                est[AY] = (x[AY] - self.checks[AY].offset - self.ay_offset.value) / v
                 sd[AY] = (0.2 + 0.1 * abs(x[AY]) + 0.5 * self._resolution(AY)) / v + cfg.lead_ay_s * env
             if valid[SW] and self.turning_s >= cfg.warmup_s and v >= 3.0:
                 g = self.steer.theta[1] / v + self.steer.theta[2] * v
                 if g > 1.0:
-                    est[SW] = (x[SW] - self.steer.theta[0]) / g
+                    est[SW] = (x[SW] - self.checks[SW].offset - self.steer.theta[0]) / g
                     sd[SW] = (1.0 * _DEG + 0.1 * abs(x[SW]) + 0.5 * self._resolution(SW)) / g + cfg.lead_steer_s * env
         for s_, lp in self._est_lp.items():
             if s_ in est:
@@ -427,7 +512,9 @@ class Plausibility:
                     sd[s_] = ((0.005 + 0.0003 * v + cfg.wheel_yaw_slip * abs(decel) * a_lat * v) / 1.56
                               + 0.02 * abs(est[s_]) + cfg.lag_yaw_s * env)
             self._est_seen[s_] = s_ in est
-        sources_ok = {s: e for s, e in est.items() if s in (RL, FL) or ok[s]}
+        # (a signal corrected for an offset jump it was flagged for goes on predicting the others, less the offset;
+        # its own check stays on the raw value, which must step back)
+        sources_ok = {s: e for s, e in est.items() if s in (RL, FL) or ok[s] or (self.checks[s].offset and valid[s])}
         if RL in sources_ok and FL in sources_ok and \
                 abs(sources_ok[RL] - sources_ok[FL]) > 3.0 * (sd[RL] + sd[FL]) + 1.0 * _DEG:
             # the two wheel pairs disagree (a wheel a little off moves its pair's estimate by degrees per second):
@@ -457,6 +544,11 @@ class Plausibility:
                 pass  # nothing left to predict the rotation from
             elif s == YAW:
                 pred[YAW] = w_ref
+                srcs = [k for k in sources_ok if k != YAW]
+                if srcs:
+                    wsum = sum(1.0 / max(self.src_var[k].value, 1e-8) for k in srcs)
+                    self._sub[YAW] = sum((sources_ok[k] - self.src_bias[k].value) / max(self.src_var[k].value, 1e-8)
+                                         for k in srcs) / wsum
             elif s == AY:
                 pred[AY] = self.ay_offset.value + v * w_ref
             elif v > 3.0:
@@ -485,6 +577,11 @@ class Plausibility:
         calm = moving and ok[YAW] and gyro_calm and (not valid[AY] or abs(x[AY]) < cfg.ay_check_max_mps2)
         if calm:
             wy = x[YAW]
+            for s_, e in est.items():
+                if s_ != YAW:
+                    d = e - wy - self.src_bias[s_].value
+                    self.src_var[s_].update(d * d)
+                    self.src_bias[s_].update(e - wy)
             if grip and ok[RL] and ok[RR]:
                 self.rear.update([wy, v], x[RR] - x[RL], 0.02 ** 2)
             if grip and ok[FL] and ok[FR]:
@@ -533,6 +630,10 @@ class Plausibility:
                 c.changed_t = t
                 c.pred_lo, c.pred_hi = math.inf, -math.inf
             r = resid[i]
+            if i in self.jumps:
+                # (the single-track relation the steering is checked by holds only at low lateral acceleration)
+                linear = i != SW or abs(x[AY] if valid[AY] else v * w) < cfg.jump_steer_max_ay_mps2
+                self._jump_row(i, xi, r, moving and linear, t, c, pred[i], newly)
             if r is None:
                 continue
             c.resid += self._alpha[i] * (r - c.resid)
@@ -563,15 +664,160 @@ class Plausibility:
                     if self.first_flag[i] is None:
                         self.first_flag[i] = (t, c.reason)
             else:
-                if abs(c.resid) < 0.5 * ti and t - c.changed_t < self.stuck_hold_s[i]:
+                if c.offset:
+                    # the corrected value must agree with the others, or the correction was wrong (a drift, a scale)
+                    c.offset_resid += self._alpha[i] * (r - c.offset - c.offset_resid)
+                    worse = abs(c.offset_resid) > ti and abs(c.offset_resid) > abs(c.resid)
+                    c.offset_over_s = c.offset_over_s + dt if worse else 0.0
+                    if c.offset_over_s >= cfg.jump_drop_s:
+                        c.offset = 0.0
+                        c.reason += "; the value less it disagrees too: the others' prediction replaces it"
+                # (an offset jump measured at its step ends with the step back, or when the value less it disagrees)
+                if abs(c.resid) < 0.5 * ti and t - c.changed_t < self.stuck_hold_s[i] and not c.offset:
                     c.under_s += dt
                     if c.under_s >= cfg.clear_s:
                         c.flagged = False
                         c.over_s = 0.0
+                        c.offset = 0.0
                         c.reason = ""
                 else:
                     c.under_s = 0.0
         return pred, newly
+
+    def _jump_row(self, i: int, xi: float, r: float | None, moving: bool, t: float, c: _Check,
+                  p: float | None, newly: list[int]) -> None:
+        """Offset jumps: a step in the signal's first difference that its residual follows.
+
+        A step ``S`` (the difference at one row less the local slope, from the 5 differences either side) beyond
+        :attr:`~PlausibilityConfig.jump_noise_gain` times the usual innovation (and half the absolute tolerance,
+        and 1.5 resolution steps) is a candidate; it is an offset jump when the raw residual's mean over
+        ``jump_after_s`` (from ``jump_lag_s`` after the step) moved from its mean over ``jump_before_s`` before by
+        ``S`` within ``jump_match``: a real change of the car's motion moves the others' prediction with it, a
+        bump is gone by then. The signal is flagged (if the residual check has not yet) and, while flagged,
+        replaced by its value less the offset, measured at the step (differences and residual shift, weighted
+        by their precision). A step back by about the offset ends the correction at once.
+        """
+        cfg = self.config
+        j = self.jumps[i]
+        j.n += 1
+        n = j.n
+        if r is not None and p is not None:
+            j.resid.append((n, r, p))
+        d = xi - j.last_x if math.isfinite(j.last_x) else math.nan
+        j.last_x = xi
+        j.values.append((n, xi))
+        if not math.isfinite(d):
+            return
+        lag, after, before = self._jump_rows[i]
+        res = self._resolution(i)
+        cand = j.cand
+        if cand is not None:
+            if cand[5] is None:
+                cand[4].append(d)
+                if len(cand[4]) == 5:
+                    slope = 0.5 * (_median(cand[3]) + _median(cand[4]))
+                    cand[5] = cand[2] - slope
+                    # an offset jumps within one row; the driver's fastest steering, a bump, take several
+                    # and the signal goes on at the rate it had (a driver's step starts a ramp)
+                    if max(abs(cand[3][-1] - slope), abs(cand[4][0] - slope), abs(cand[4][1] - slope),
+                           abs(_median(cand[4]) - _median(cand[3]))) > cfg.jump_sharp * abs(cand[5]) + res:
+                        j.cand = None
+                        j.d1.append(d)
+                        return
+            elif n - cand[0] >= lag + after:
+                j.cand = None
+                step = cand[5]
+                pre = [rr for k, rr, _ in j.resid if cand[0] - before <= k < cand[0]]
+                post = [rr for k, rr, _ in j.resid if cand[0] + lag <= k < cand[0] + lag + after]
+                p_pre = [(k, pp) for k, _, pp in j.resid if cand[0] - before <= k < cand[0]]
+                p_post = [(k, pp) for k, _, pp in j.resid if cand[0] + lag <= k < cand[0] + lag + after]
+                # steering: the others went on as they were going (a driver's steering step turns the car after it)
+                still = i != SW or (len(p_pre) >= 3 and bool(p_post) and abs(
+                    _mean_at(p_post) - _trend_at(p_pre, sum(k for k, _ in p_post) / len(p_post)))
+                    < cfg.jump_others_still * abs(step))
+                if still and len(pre) >= before // 2 and len(post) >= after // 2:
+                    m0, m1 = sum(pre) / len(pre), sum(post) / len(post)
+                    shift = m1 - m0
+                    # an offset leaves the residual as steady as it was; a response settling (the car catching
+                    # up with a fast steering input) moves it
+                    var0 = sum((a - m0) ** 2 for a in pre) / len(pre)
+                    var1 = sum((a - m1) ** 2 for a in post) / len(post)
+                    lim = (cfg.jump_steady * step) ** 2 + 0.25 * res * res  # (a coarse signal's quantisation)
+                    steady = var0 <= lim and var1 <= lim + 2.0 * var0
+                    if steady and shift * step > 0 and \
+                            abs(shift - step) < cfg.jump_match * abs(step) + 2.0 * math.sqrt(var0 + var1):
+                        self._offset_found(i, c, step, shift, pre, post, m0, m1, res, cand, t, xi, p, newly)
+        if j.cand is None and moving and j.noise_n >= 50 and len(j.d1) == j.d1.maxlen:
+            hist = list(j.d1)[-5:]
+            inn = d - _median(hist)
+            if abs(inn) > max(cfg.jump_noise_gain * j.noise, self._jump_min[i], 1.5 * res):
+                j.cand = [n, t, d, hist, [], None]
+            else:
+                j.noise += (min(abs(inn), 4.0 * j.noise) - j.noise) * self.dt_s / 5.0
+        elif j.cand is None and len(j.d1) == j.d1.maxlen:
+            inn = abs(d - _median(list(j.d1)[-5:]))
+            j.noise_n += 1
+            j.noise += (inn - j.noise) / min(j.noise_n, 250) if j.noise_n < 50 else \
+                (min(inn, 4.0 * j.noise) - j.noise) * self.dt_s / 5.0
+        j.d1.append(d)
+
+    @staticmethod
+    def _step_fit(j: _Jump, k0: int, half: int = 15) -> tuple[float, float] | None:
+        """``(step, std)`` at row ``k0`` from the values around it: a quadratic in time plus a step, least squares."""
+        pts = [(k - k0, v) for k, v in j.values if -half <= k - k0 < half]
+        if len(pts) < half or sum(1 for tau, _ in pts if tau < 0) < 4 or sum(1 for tau, _ in pts if tau >= 0) < 4:
+            return None
+        tau = np.array([p_[0] for p_ in pts], dtype=float)
+        a = np.column_stack([np.ones_like(tau), tau, tau * tau, (tau >= 0).astype(float)])
+        y = np.array([p_[1] for p_ in pts])
+        coef, *_ = np.linalg.lstsq(a, y, rcond=None)
+        dof = len(pts) - 4
+        s2 = float(np.sum((y - a @ coef) ** 2)) / dof if dof > 0 else 0.0
+        return float(coef[3]), math.sqrt(s2 * float(np.linalg.inv(a.T @ a)[3, 3]))
+
+    def _offset_found(self, i, c, step, shift, pre, post, m0, m1, res, cand, t, xi, p, newly) -> None:
+        """An offset jump confirmed: flag the signal (if not yet) and correct it by the measured offset."""
+        if c.flagged and c.reason.startswith(("stuck", "dropout")):
+            return  # a dead value, not an offset: the others' prediction stays its substitute
+        if xi == 0.0:
+            return
+        t_step = cand[1]
+        fit = self._step_fit(self.jumps[i], cand[0])
+        before = c.offset
+        if fit is not None:
+            # the values around the step measure it best (the residual carries the others' noise); they must see the
+            # step too (a coarse signal's difference wobbles by a step: the values around it do not)
+            if abs(fit[0] - step) > self.config.jump_match * abs(step) + res \
+                    or abs(fit[0]) < max(self._jump_min[i], 1.5 * res):
+                return
+            c.offset, sd_fit = fit
+            c.offset_std = math.hypot(sd_fit, res / math.sqrt(12.0))
+        else:
+            var_d = 2.0 * self.jumps[i].noise ** 2 + res * res / 3.0
+            var_s = (sum((a - m0) ** 2 for a in pre) / len(pre) / max(len(pre) / 5.0, 1.0)
+                     + sum((a - m1) ** 2 for a in post) / len(post) / max(len(post) / 5.0, 1.0))
+            w = var_s / (var_d + var_s) if var_d + var_s > 0 else 1.0
+            c.offset = w * step + (1.0 - w) * shift
+            c.offset_std = math.sqrt(var_d * var_s / (var_d + var_s)) if var_d + var_s > 0 else 0.0
+        c.offset_resid, c.offset_over_s = 0.0, 0.0
+        if before:
+            if c.offset * before < 0 and abs(c.offset + before) < self.config.jump_match * abs(before) + res:
+                c.offset = 0.0  # it stepped back: the correction ends, the flag clears as usual
+                c.reason += f"; stepped back at {t_step:.2f} s"
+                return
+            c.offset += before  # a second jump on top of the first
+        self.offsets_found.append((i, c.offset - before, c.offset_std, t_step))
+        unit, k = SIGNAL_UNITS[i]
+        ref = f"{p * k:.2f}" if p is not None else "?"
+        c.reason = (f"offset: jumped by {c.offset * k:+.2f} {unit} at {t_step:.2f} s (reads {xi * k:.2f} where the "
+                    f"others say {ref}); replaced by the value less the jump")
+        if not c.flagged:
+            c.flagged = True
+            c.under_s = 0.0
+            newly.append(i)
+            self.flag_episodes[i] += 1
+            if self.first_flag[i] is None:
+                self.first_flag[i] = (t, c.reason)
 
     def _resolution(self, i: int) -> float:
         """Smallest change of signal ``i`` seen so far, at most the coarsest common step (the reference car's)."""

@@ -90,6 +90,9 @@ class AssembledRow:
     newly_frozen: tuple[int, ...] = ()  # signals a stuck check froze at this row
     # runtime.plausibility: values replaced by what the other signals predict (flagged or stale signals)
     substituted: np.ndarray | None = None  # (9,) bool, None: none replaced
+    substitute_std: np.ndarray | None = None  # (9,) uncertainty of each substituted value [SI] (nan: not known)
+    # offset jumps the cross-checks measured at this row: (signal index, offset [SI], its std, time of the step [s])
+    offset_jumps: tuple[tuple[int, float, float, float], ...] = ()
     newly_flagged: tuple[int, ...] = ()  # signals the cross-checks flagged at this row
 
     @property
