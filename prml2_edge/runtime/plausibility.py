@@ -31,13 +31,21 @@ the signals involved are unflagged; a relation takes part in the checks once it 
 driving (:attr:`~PlausibilityConfig.warmup_s`, turns for the steering).
 
 A flagged signal, and a stale one (its message stopped), is taken out: it is invalid for the
-filter (no cue, no standstill check from it) and its value in the row is replaced by what the
-others predict for it (wheel: median of the others, radius ratio and lever arm; speedometer:
-factor times the wheels; yaw rate: the median of the other rotation estimates; a_y: ``v omega``;
+filter (no standstill check from it) and its value in the row is replaced by what the others
+predict for it (wheel: median of the others, radius ratio and lever arm; speedometer: factor times
+the wheels; yaw rate: the weighted median of the other rotation estimates; a_y: ``v omega``;
 steering: the single-track model; brake pressure: from the wheels' deceleration), so the model
-keeps its full window. ``AssembledRow.substituted`` marks those values; the pose is ``DEGRADED``
-and the status line names the signal and the reason. Checks run above
-:attr:`~PlausibilityConfig.min_speed_mps`; below it (parking, ABS sensors blind) flags hold.
+keeps its full window. ``AssembledRow.substituted`` marks those values (``substitute_std`` their
+uncertainty: the filter keeps a substituted yaw rate as its cue, with it added); the pose is ``DEGRADED`` and the status
+line names the signal and the reason. Checks run above :attr:`~PlausibilityConfig.min_speed_mps`;
+below it (parking, ABS sensors blind) flags hold.
+
+5. **offset jumps** (yaw rate, a_y, steering, :meth:`Plausibility._jump_row`): a step within one row
+   of the signal's first difference that the residual follows while the others go on as before is
+   an offset jump, flagged when confirmed (0.4-0.9 s) even inside the residual tolerance; its size is
+   measured from the values around the step and the substitute is the signal less it (reported in
+   ``AssembledRow.offset_jumps``, from which the pipeline takes back the heading the jump cost before
+   it was found). A confirmed step back ends the correction.
 """
 
 from __future__ import annotations
@@ -108,7 +116,6 @@ class PlausibilityConfig:
     stuck_res_steps: float = 5.0  # ... while the smoothed prediction moved by this many resolution steps ...
     stuck_span_tol: float = 0.5  # ... plus this many absolute tolerances
     substitute_stale: bool = True  # a stale signal (message stopped) gets the others' prediction too
-    substitute_bias_tau_s: float = 30.0  # the yaw-rate substitute carries the gyro's mean difference to the others
     substitute_yaw_std_radps: float = 0.5 * _DEG  # uncertainty of the others' yaw rate (the filter's cue from it)
     # offset jumps of the yaw rate, a_y and steering: a step in the signal's own first difference (beyond
     # jump_noise_gain times its usual innovation) that the residual follows (its mean over jump_after_s, from
@@ -301,11 +308,6 @@ class Plausibility:
         self.steer = _Rls([0.0, cfg.steering_ratio * 2.7, cfg.steering_ratio * 0.002],
                           [0.05, 20.0, 0.05], forget)
         self.ay_offset = _Ema(dt / 20.0)
-        # each rotation estimate's mean difference to the gyro and its variance about it, while the gyro is calm: the
-        # yaw-rate substitute is their inverse-variance mean, each less its bias
-        a_sub = dt / cfg.substitute_bias_tau_s
-        self.src_bias = {s_: _Ema(a_sub) for s_ in (RL, FL, AY, SW)}
-        self.src_var = {s_: _Ema(a_sub, (1.0 * _DEG) ** 2) for s_ in (RL, FL, AY, SW)}
         self.speedo_factor = _Ema(dt / 20.0, 1.04)
         self.wheel_ratio = [_Ema(dt / 30.0, 1.0) for _ in range(4)]
         self.brake_idle = _Ema(dt / 5.0, 0.0)
@@ -394,7 +396,7 @@ class Plausibility:
                     x[i] -= c.offset  # an offset jump: the value less it
                     std[i] = c.offset_std
                 elif (c.flagged or i in self.untrusted or self.config.substitute_stale) and pred[i] is not None:
-                    x[i] = self._sub.get(i, pred[i])
+                    x[i] = pred[i]
                     std[i] = self._sub_std.get(i, math.nan)
                 else:
                     continue
@@ -414,7 +416,6 @@ class Plausibility:
         cfg = self.config
         dt = self.dt_s
         pred: list[float | None] = [None] * N
-        self._sub: dict[int, float] = {}  # substitutes other than the prediction checked against
         self._sub_std: dict[int, float] = {YAW: cfg.substitute_yaw_std_radps}
         tol = [math.inf] * N
         resid: list[float | None] = [None] * N
@@ -544,11 +545,6 @@ class Plausibility:
                 pass  # nothing left to predict the rotation from
             elif s == YAW:
                 pred[YAW] = w_ref
-                srcs = [k for k in sources_ok if k != YAW]
-                if srcs:
-                    wsum = sum(1.0 / max(self.src_var[k].value, 1e-8) for k in srcs)
-                    self._sub[YAW] = sum((sources_ok[k] - self.src_bias[k].value) / max(self.src_var[k].value, 1e-8)
-                                         for k in srcs) / wsum
             elif s == AY:
                 pred[AY] = self.ay_offset.value + v * w_ref
             elif v > 3.0:
@@ -577,11 +573,6 @@ class Plausibility:
         calm = moving and ok[YAW] and gyro_calm and (not valid[AY] or abs(x[AY]) < cfg.ay_check_max_mps2)
         if calm:
             wy = x[YAW]
-            for s_, e in est.items():
-                if s_ != YAW:
-                    d = e - wy - self.src_bias[s_].value
-                    self.src_var[s_].update(d * d)
-                    self.src_bias[s_].update(e - wy)
             if grip and ok[RL] and ok[RR]:
                 self.rear.update([wy, v], x[RR] - x[RL], 0.02 ** 2)
             if grip and ok[FL] and ok[FR]:
