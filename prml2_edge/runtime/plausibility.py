@@ -18,6 +18,12 @@ between the assembler and the localiser and, every 50 Hz row:
 4. **stuck** — every signal whose value has not changed for :attr:`PlausibilityConfig.stuck_hold_s`
    (at least 5 of its periods) while what the others predict for it moved by more than twice its
    tolerance.
+5. **offset jumps** (yaw rate, a_y, steering, :meth:`Plausibility._jump_row`): a step within one row
+   of the signal's first difference that the residual follows while the others go on as before is
+   an offset jump, flagged when confirmed (0.4-0.9 s) even inside the residual tolerance; its size is
+   measured from the values around the step and the substitute is the signal less it (reported in
+   ``AssembledRow.offset_jumps``, from which the pipeline takes back the heading the jump cost before
+   it was found). A confirmed step back ends the correction.
 
 A residual is smoothed (EMA, :attr:`~PlausibilityConfig.smooth_s`); above its tolerance for
 :attr:`~PlausibilityConfig.confirm_s` the signal is *flagged*, with a reason (offset, scale,
@@ -40,12 +46,6 @@ uncertainty: the filter keeps a substituted yaw rate as its cue, with it added);
 line names the signal and the reason. Checks run above :attr:`~PlausibilityConfig.min_speed_mps`;
 below it (parking, ABS sensors blind) flags hold.
 
-5. **offset jumps** (yaw rate, a_y, steering, :meth:`Plausibility._jump_row`): a step within one row
-   of the signal's first difference that the residual follows while the others go on as before is
-   an offset jump, flagged when confirmed (0.4-0.9 s) even inside the residual tolerance; its size is
-   measured from the values around the step and the substitute is the signal less it (reported in
-   ``AssembledRow.offset_jumps``, from which the pipeline takes back the heading the jump cost before
-   it was found). A confirmed step back ends the correction.
 """
 
 from __future__ import annotations
@@ -253,7 +253,7 @@ class _Jump:
     d1: deque = field(default_factory=lambda: deque(maxlen=6))
     noise: float = 0.0  # EMA of |first difference - local slope|
     noise_n: int = 0
-    resid: deque = field(default_factory=lambda: deque(maxlen=96))  # (row number, raw residual)
+    resid: deque = field(default_factory=lambda: deque(maxlen=96))  # (row number, raw residual, prediction)
     values: deque = field(default_factory=lambda: deque(maxlen=64))  # (row number, value)
     n: int = 0
     cand: list | None = None  # [row number, t, step, pre-step differences, post-step differences, S]
@@ -296,6 +296,7 @@ class Plausibility:
         self._alpha = [dt / (cfg.smooth_rot_s if i in (YAW, AY, SW) else cfg.smooth_s) for i in range(N)]
         self.checks = [_Check() for _ in range(N)]
         self.jumps = {i: _Jump() for i in (YAW, AY, SW)}
+        self._sub_std = {YAW: cfg.substitute_yaw_std_radps}  # uncertainty of the others' prediction as a substitute
         self._jump_rows = {i: (int(round(lag / dt)), int(round(cfg.jump_after_s / dt)),
                                int(round(cfg.jump_before_s / dt)))
                            for i, lag in ((YAW, cfg.jump_lag_s), (AY, cfg.jump_lag_ay_s), (SW, cfg.jump_lag_steer_s))}
@@ -416,7 +417,6 @@ class Plausibility:
         cfg = self.config
         dt = self.dt_s
         pred: list[float | None] = [None] * N
-        self._sub_std: dict[int, float] = {YAW: cfg.substitute_yaw_std_radps}
         tol = [math.inf] * N
         resid: list[float | None] = [None] * N
         h = cfg.half_track_m
@@ -680,13 +680,13 @@ class Plausibility:
         """Offset jumps: a step in the signal's first difference that its residual follows.
 
         A step ``S`` (the difference at one row less the local slope, from the 5 differences either side) beyond
-        :attr:`~PlausibilityConfig.jump_noise_gain` times the usual innovation (and half the absolute tolerance,
-        and 1.5 resolution steps) is a candidate; it is an offset jump when the raw residual's mean over
-        ``jump_after_s`` (from ``jump_lag_s`` after the step) moved from its mean over ``jump_before_s`` before by
-        ``S`` within ``jump_match``: a real change of the car's motion moves the others' prediction with it, a
-        bump is gone by then. The signal is flagged (if the residual check has not yet) and, while flagged,
-        replaced by its value less the offset, measured at the step (differences and residual shift, weighted
-        by their precision). A step back by about the offset ends the correction at once.
+        :attr:`~PlausibilityConfig.jump_noise_gain` times the usual innovation, the signal's ``jump_min_*`` and
+        1.5 resolution steps, with the differences next to it and the slope after it as before (``jump_sharp``), is
+        a candidate. It is an offset jump when the raw residual's mean over ``jump_after_s`` (from the signal's
+        ``jump_lag*_s`` after the step) moved from its mean over ``jump_before_s`` before by ``S`` within
+        ``jump_match``, the residual steady on both sides (``jump_steady``) and, for the steering, the others'
+        prediction going on along its trend (``jump_others_still``): a real change of the car's motion moves the
+        others with it, a bump is gone by then. :meth:`_offset_found` then measures it and flags the signal.
         """
         cfg = self.config
         j = self.jumps[i]
@@ -718,10 +718,10 @@ class Plausibility:
             elif n - cand[0] >= lag + after:
                 j.cand = None
                 step = cand[5]
-                pre = [rr for k, rr, _ in j.resid if cand[0] - before <= k < cand[0]]
-                post = [rr for k, rr, _ in j.resid if cand[0] + lag <= k < cand[0] + lag + after]
-                p_pre = [(k, pp) for k, _, pp in j.resid if cand[0] - before <= k < cand[0]]
-                p_post = [(k, pp) for k, _, pp in j.resid if cand[0] + lag <= k < cand[0] + lag + after]
+                win_pre = [e for e in j.resid if cand[0] - before <= e[0] < cand[0]]
+                win_post = [e for e in j.resid if cand[0] + lag <= e[0] < cand[0] + lag + after]
+                pre, post = [e[1] for e in win_pre], [e[1] for e in win_post]
+                p_pre, p_post = [(e[0], e[2]) for e in win_pre], [(e[0], e[2]) for e in win_post]
                 # steering: the others went on as they were going (a driver's steering step turns the car after it)
                 still = i != SW or (len(p_pre) >= 3 and bool(p_post) and abs(
                     _mean_at(p_post) - _trend_at(p_pre, sum(k for k, _ in p_post) / len(p_post)))
