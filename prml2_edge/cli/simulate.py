@@ -11,7 +11,7 @@ import argparse
 
 HELP = "Simulate drives and write ReV-StED-schema CSV files."
 NEEDS: tuple[tuple[str, str], ...] = ()
-FAMILIES = ("longitudinal", "lateral", "mixed", "snow")  # mirrors prml2_edge.data.simulate.FAMILIES
+FAMILIES = ("longitudinal", "lateral", "mixed", "snow", "highway")  # mirrors prml2_edge.data.simulate.FAMILIES
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

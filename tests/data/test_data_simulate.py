@@ -128,3 +128,15 @@ def test_fleet_cars_have_their_drivetrain_and_sensor_resolution():
     assert step == pytest.approx(np.radians(0.1)) and np.allclose(yaw / step, np.round(yaw / step), atol=1e-6)
     with pytest.raises(ConfigError, match="unknown vehicle 'tesla'; the simulated fleet has reference"):
         simulate_drive(0.1, 1.0, seed=1, vehicle="tesla")
+
+
+def test_highway_starts_at_speed_never_stops_and_stays_gentle():
+    d = simulate_drive(2.0, 1.0, seed=1, family="highway", vehicle="compact_fwd")
+    z = d.z_gt
+    assert np.all(np.isfinite(d.onboard))
+    assert z[0, 0] >= 14.0 and z[:, 0].min() > 10.0  # no standstill, from the first sample on
+    assert np.abs(z[:, 3]).max() < 2.5 and np.degrees(np.abs(z[:, 4]).max()) < 6.0
+    assert np.degrees(np.abs(z[:, 4]).max()) > 0.5  # it does bend: the curves are what calibrates
+    assert "standstill" not in {name for _, name in d.meta["manoeuvres"]}
+    for k, sig in enumerate(schema.SIGNALS):
+        assert sig.min <= d.onboard[:, k].min() and d.onboard[:, k].max() <= sig.max

@@ -22,6 +22,7 @@ __all__ = ["CARS", "FAMILIES", "Car", "DriverPlan", "SensorErrors", "SensorProfi
            "get_car", "simulate_drive"]
 
 SNOW_MU_RANGE = (0.2, 0.5)
+HIGHWAY_HOME_RADIUS_M = 3000.0  # a highway leaves the test track's 700 m; turn back only far out
 
 
 def simulate_drive(minutes: float, mu: float, seed: int, family: str = "mixed", name: str | None = None,
@@ -38,7 +39,7 @@ def simulate_drive(minutes: float, mu: float, seed: int, family: str = "mixed", 
     seed : int
         Seeds the driver, the vehicle's start heading and the sensor errors.
     family : str
-        ``longitudinal``, ``lateral``, ``mixed`` or ``snow``.
+        ``longitudinal``, ``lateral``, ``mixed``, ``snow`` or ``highway`` (starts at speed, never stops).
     name : str, optional
         Drive name (default ``sim_<family>_s<seed>``).
     progress : bool
@@ -73,7 +74,8 @@ def simulate_drive(minutes: float, mu: float, seed: int, family: str = "mixed", 
     bar = Progress(n, desc=f"simulate {name or family}", unit="samples", enabled=None if progress else False)
     try:
         trace = simulate_vehicle(params, mu, plan.delta_cmd, plan.accel_ff, plan.v_ref, psi0_rad=psi0,
-                                 free_steer=plan.free_steer, progress_cb=bar.update)
+                                 free_steer=plan.free_steer, progress_cb=bar.update, v0_mps=plan.v0_mps,
+                                 home_radius_m=HIGHWAY_HOME_RADIUS_M if family == "highway" else 700.0)
     finally:
         bar.close()
     errors = SensorErrors.draw(rng, car.sensors)

@@ -12,6 +12,10 @@ Families (method.md; paper Sec. IV):
 * ``mixed``: both, plus braking and accelerating in bends;
 * ``snow``: the mixed catalogue at mu 0.2-0.5 with gentler inputs, driven closer to
   the (lower) limit, so the tyres slip more.
+* ``highway``: a real car's commute rather than a test track: the drive starts at speed
+  (14-25 m/s) and never stops, gentle bends (|a_y| <= ~1.2 m/s^2, yaw rate a few deg/s),
+  slow lane changes and gentle speed changes. No standstill, so nothing calibrates a gyro
+  offset for free (issue 28: what real highway logs look like).
 
 Accelerations stay inside what a driver does on a test track: longitudinal up to
 ~0.6 mu g (emergency-like stops rarer), lateral up to ~0.75 mu g.
@@ -27,7 +31,9 @@ import numpy as np
 from prml2_edge import schema
 from prml2_edge.data.simulate.vehicle import VehicleParams
 
-FAMILIES = ("longitudinal", "lateral", "mixed", "snow")
+FAMILIES = ("longitudinal", "lateral", "mixed", "snow", "highway")
+HIGHWAY_V0_MPS = (14.0, 25.0)
+HIGHWAY_AY_MAX_MPS2 = 1.2
 V_MAX_PLAN_MPS = 28.0
 DT = schema.DT_S
 
@@ -42,6 +48,7 @@ class DriverPlan:
     delta_cmd: np.ndarray  # front wheel angle [rad]
     free_steer: np.ndarray  # bool: the driver may steer back towards the track centre
     manoeuvre: list[tuple[int, str]]  # (start sample, name)
+    v0_mps: float = 0.0  # speed at the first sample (0: the drive starts at rest)
 
 
 class _Builder:
@@ -90,15 +97,15 @@ class _Builder:
         k = np.full(n, float(kappa)) if np.ndim(kappa) == 0 else np.asarray(kappa)[:n]
         self._push(name, np.full(n, self.v), np.zeros(n), k, free)
 
-    def gentle_bends(self, n: int) -> np.ndarray:
-        """Road-like curvature: sum of slow sinusoids, |kappa| keeps a_y below ~1.5 m/s^2."""
+    def gentle_bends(self, n: int, ay_max: float = 1.5) -> np.ndarray:
+        """Road-like curvature: sum of slow sinusoids, |kappa| keeps a_y below ~``ay_max`` m/s^2."""
         t = np.arange(n) * DT
         k = np.zeros(n)
         for _ in range(3):
             period = self.rng.uniform(15.0, 60.0)
             k += self.rng.uniform(-1.0, 1.0) * np.sin(2 * np.pi * t / period + self.rng.uniform(0, 2 * np.pi))
         v = max(self.v, 5.0)
-        return k / 3.0 * min(1.0 / 150.0, 1.5 / v**2)
+        return k / 3.0 * min(1.0 / 150.0, ay_max / v**2)
 
     # -- manoeuvres ------------------------------------------------------------------------
     def standstill(self) -> None:
@@ -154,10 +161,25 @@ class _Builder:
             return
         self.hold(len(k) * DT, kappa=k, name="circle", free=False)
 
-    def lane_change(self) -> None:
-        self._to_speed(10.0, 25.0)
+    def highway_cruise(self) -> None:
+        dur = self.rng.uniform(8.0, 30.0)
+        self.hold(dur, kappa=self.gentle_bends(int(round(dur / DT)), HIGHWAY_AY_MAX_MPS2), name="cruise")
+
+    def highway_speed(self) -> None:
+        """A gentle speed change between 14 and 27 m/s in a gentle bend."""
+        v_t = self.rng.uniform(14.0, 27.0)
+        kap = self.gentle_bends(2, HIGHWAY_AY_MAX_MPS2)[0]
+        self.speed_change(v_t, self.rng.uniform(0.15, 0.4) * self.a_long, kappa=kap, kappa_end=0.0,
+                          name="speed_change")
+
+    def highway_lane_change(self) -> None:
+        self.lane_change(duration_s=(4.5, 7.0), to_speed=False)
+
+    def lane_change(self, duration_s: tuple[float, float] = (2.5, 4.5), to_speed: bool = True) -> None:
+        if to_speed:
+            self._to_speed(10.0, 25.0)
         v = max(self.v, 5.0)
-        dur = self.rng.uniform(2.5, 4.5)
+        dur = self.rng.uniform(*duration_s)
         width = self.rng.uniform(3.0, 4.0) * (1 if self.rng.random() < 0.5 else -1)
         n = int(round(dur / DT))
         t = np.arange(n) * DT
@@ -196,6 +218,7 @@ _CATALOGUE = {
               "lane_change": 1.5, "tight_turn": 1, "bend_accelerate": 1.5},
 }
 _CATALOGUE["snow"] = _CATALOGUE["mixed"]
+_CATALOGUE["highway"] = {"highway_cruise": 4, "highway_speed": 1.5, "highway_lane_change": 1}
 
 
 def plan_drive(n_samples: int, mu: float, family: str, rng: np.random.Generator,
@@ -209,8 +232,12 @@ def plan_drive(n_samples: int, mu: float, family: str, rng: np.random.Generator,
     names = list(cat)
     weights = np.array([cat[k] for k in names], dtype=float)
     weights /= weights.sum()
-    b.hold(rng.uniform(2.0, 5.0), name="standstill", free=False)
-    b.accelerate()
+    if family == "highway":
+        b.v = v0 = float(rng.uniform(*HIGHWAY_V0_MPS))
+    else:
+        v0 = 0.0
+        b.hold(rng.uniform(2.0, 5.0), name="standstill", free=False)
+        b.accelerate()
     while b.n < n_samples:
         choice = names[int(rng.choice(len(names), p=weights))]
         if choice == "brake" and b.v < 6.0:
@@ -235,7 +262,7 @@ def plan_drive(n_samples: int, mu: float, family: str, rng: np.random.Generator,
     delta = np.clip(delta, -p.max_wheel_angle_rad, p.max_wheel_angle_rad)
     delta = _rate_limit(_lowpass(delta, tau_s=0.12), max_rate=np.radians(500.0) / p.steering_ratio * DT)
     return DriverPlan(v_ref=v_ref, accel_ff=accel, kappa=kappa, delta_cmd=delta, free_steer=free,
-                      manoeuvre=[lab for lab in b.labels if lab[0] < n_samples])
+                      manoeuvre=[lab for lab in b.labels if lab[0] < n_samples], v0_mps=v0)
 
 
 def _lowpass(x: np.ndarray, tau_s: float) -> np.ndarray:

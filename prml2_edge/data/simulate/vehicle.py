@@ -96,7 +96,7 @@ class VehicleTrace:
 
 def simulate_vehicle(params: VehicleParams, mu: float, delta_cmd: np.ndarray, accel_cmd: np.ndarray,
                      v_ref: np.ndarray, psi0_rad: float = 0.0, home_radius_m: float = 700.0,
-                     free_steer: np.ndarray | None = None, progress_cb=None) -> VehicleTrace:
+                     free_steer: np.ndarray | None = None, progress_cb=None, v0_mps: float = 0.0) -> VehicleTrace:
     """Run the closed loop (speed controller + vehicle) over the driver's 50 Hz plan.
 
     Parameters
@@ -119,6 +119,8 @@ def simulate_vehicle(params: VehicleParams, mu: float, delta_cmd: np.ndarray, ac
         Samples where the driver may add the steer-home correction.
     progress_cb : callable, optional
         Called with the number of 50 Hz samples done, every 500 samples.
+    v0_mps : float
+        Speed at the start (0: from rest), straight ahead.
     """
     p = params
     n = len(delta_cmd)
@@ -127,7 +129,7 @@ def simulate_vehicle(params: VehicleParams, mu: float, delta_cmd: np.ndarray, ac
     free = np.ones(n, dtype=bool) if free_steer is None else free_steer
 
     out = np.zeros((n, 16))
-    vx, vy, r, x, y, psi = 0.0, 0.0, 0.0, 0.0, 0.0, psi0_rad
+    vx, vy, r, x, y, psi = float(v0_mps), 0.0, 0.0, 0.0, 0.0, psi0_rad
     ax_prev, ay_prev = 0.0, 0.0
     delta = 0.0
     kp_speed = 0.9  # 1/s
