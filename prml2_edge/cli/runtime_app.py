@@ -163,6 +163,10 @@ def plausibility_lines(summary: dict) -> list[str]:
             if inj.get("observed_hz") else ""
         lines.append(f"WARNING injection suspected on {name} (ID {inj['id']}): {inj['episodes']} episode(s){rate}; "
                      f"{inj['intruder_frames_rejected']} frames of a second sender rejected")
+    noise = summary.get("gnss_std_m") or {}
+    if noise.get("measured") is not None and noise["used"] > noise["configured"]:
+        lines.append(f"GNSS: the fixes' own noise is {noise['measured']:.2f} m per axis, more than the configured "
+                     f"{noise['configured']:.2f} m: the gate, the fusion and the checks used {noise['used']:.2f} m")
     spoof = summary.get("gnss_suspect") or {}
     if spoof.get("episodes"):
         lines.append(f"WARNING GNSS suspect {spoof['episodes']}x ({spoof['fixes_refused']} fixes not fused): "
@@ -178,6 +182,9 @@ def calibration_lines(cal: dict, init_rejected: int = 0) -> list[str]:
                      f"{cal['yaw_rate_offset_std_dps']:.3f} °/s, wheel scale {cal['wheel_scale_pct']:+.2f} ± "
                      f"{cal['wheel_scale_std_pct']:.2f} %, {cal['standstill_updates']} standstill updates, yaw-rate "
                      f"resolution {cal['yaw_rate_resolution_dps']:.3g} °/s")
+        if not cal["standstill_updates"]:
+            lines.append("calibration: no standstill in this drive: the yaw-rate offset was learned from GNSS while "
+                         "driving, and its ± is all that is known (a stop of a second or more pins it down)")
     elif cal.get("enabled") is False:
         lines.append("calibration: off (--no-calibration)")
     if cal.get("file"):

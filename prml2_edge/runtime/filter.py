@@ -32,7 +32,7 @@ import numpy as np
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import CalibrationNoise, CalibrationStd, Ekf, StepStatus, wrap_angle
 from prml2_edge.runtime.estimator import Estimate
-from prml2_edge.runtime.gnss_check import GnssCheck, GnssCheckConfig
+from prml2_edge.runtime.gnss_check import FixNoise, GnssCheck, GnssCheckConfig
 from prml2_edge.runtime.initial_pose import InitialPose, initial_state
 from prml2_edge.runtime.rows import GnssFix
 from prml2_edge.schema import EkfState
@@ -90,6 +90,25 @@ class PoseFilter:
         self.n_gnss_init_rejected = 0  # first fixes that the next fix or the wheels contradicted
         self.n_standstill_updates = 0
         self.gnss_check = GnssCheck(GnssCheckConfig(enabled=bool(getattr(self.config, "gnss_consistency", True))))
+        self.fix_noise = FixNoise()
+
+    @property
+    def gnss_std_m(self) -> float:
+        """The GNSS noise per axis the gate, the fusion and the checks use [m]: the configured one, or the fix
+        stream's own when that is larger (a consumer receiver behind a configuration for a better one)."""
+        est = self.fix_noise.std_m
+        if est is None:  # the first fixes: not known yet
+            return FixNoise.UNKNOWN_FACTOR * self.config.gnss_pos_std_m
+        return max(self.config.gnss_pos_std_m, est)
+
+    def _yaw_rate_std(self) -> tuple[float, bool]:
+        """``(std, converged)``: how well the filter knows the CAN yaw-rate offset [rad/s]. Without the calibration
+        states nothing learns it: the prior stands, and the checks arm anyway (they would never arm)."""
+        cfg = self.config
+        if not self.calibrated or self.ekf is None:
+            return cfg.cal_yaw_offset_prior_std_radps, True
+        std = math.sqrt(max(float(self.ekf.cal_cov[0, 0]), 0.0))
+        return std, std <= math.radians(self.gnss_check.config.arm_rate_std_dps)
 
     @property
     def calibrated(self) -> bool:
@@ -139,7 +158,8 @@ class PoseFilter:
     def _try_start(self, values: np.ndarray, valid: np.ndarray, t_s: float, fix: GnssFix | None) -> FilterStep:
         pose = self.initial_pose if self.ekf is None else None
         if pose is None and fix is not None and self._wheels_known(valid):
-            pose = InitialPose.from_gnss(fix, self.config.gnss_pos_std_m, self.config.gnss_heading_std_deg)
+            self.fix_noise.add(fix.t_s, fix.x_m, fix.y_m)
+            pose = InitialPose.from_gnss(fix, self.gnss_std_m, self.config.gnss_heading_std_deg)
             self._confirmed = not self.config.gnss_init_check
             self._prev_fix = (fix, self._wheel_speed(values, valid))
         if pose is None:
@@ -177,7 +197,8 @@ class PoseFilter:
             return True  # nothing to compare with: keep the provisional start, check the next pair
         moved = math.hypot(fix.x_m - last.x_m, fix.y_m - last.y_m)
         expected = 0.5 * (speed + last_speed) * dt
-        slack = cfg.gnss_gate_sigma * math.sqrt(2.0) * cfg.gnss_pos_std_m + cfg.gnss_init_speed_tol_mps * dt
+        self.fix_noise.add(fix.t_s, fix.x_m, fix.y_m)
+        slack = cfg.gnss_gate_sigma * math.sqrt(2.0) * self.gnss_std_m + cfg.gnss_init_speed_tol_mps * dt
         if abs(moved - expected) <= slack:
             self._confirmed = True
             return True
@@ -262,7 +283,7 @@ class PoseFilter:
             dist2 = float(d @ d)
             if dist2 > 1.0:
                 scale = float(self._odo @ d) / dist2 - 1.0
-                var = 2.0 * cfg.gnss_pos_std_m ** 2 / dist2 + cfg.scale_meas_floor ** 2
+                var = 2.0 * self.gnss_std_m ** 2 / dist2 + cfg.scale_meas_floor ** 2
                 status = self.ekf.update_wheel_scale(scale, var)  # type: ignore[union-attr]
                 self.n_scale_updates += int(status is StepStatus.SUCCESS)
             anchor = None
@@ -293,6 +314,8 @@ class PoseFilter:
 
     def _fuse(self, fix: GnssFix, t_s: float) -> bool:
         cfg = self.config
+        self.fix_noise.add(fix.t_s, fix.x_m, fix.y_m)
+        self.gnss_check.fix_std_m = std_m = self.gnss_std_m
         x = self.ekf.x  # type: ignore[union-attr]
         # Move the fix from its frame time to this row's time along the current velocity (<= one period).
         lag_s = min(max(t_s - fix.t_s, 0.0), self.dt_s)
@@ -308,9 +331,11 @@ class PoseFilter:
             psi = None
         m2 = self._mahalanobis(pos)
         ekf = self.ekf
+        rate_std, converged = self._yaw_rate_std()
         trusted, correction = self.gnss_check.check(t_s, (float(pos[0]), float(pos[1])),
                                                     (float(x[EkfState.POS][0]), float(x[EkfState.POS][1])),
-                                                    m2 <= cfg.gnss_gate_chi2, float(ekf.pose_std[1]))
+                                                    m2 <= cfg.gnss_gate_chi2, float(ekf.pose_std[1]), rate_std,
+                                                    converged)
         if correction is not None:
             # what was fused since the baseline's start was the spoofer's: back to the odometry's position
             ekf.x[EkfState.POS] = correction  # type: ignore[union-attr]
@@ -325,7 +350,7 @@ class PoseFilter:
             d_psi = float(wrap_angle(psi - x[_YAW]))
             if d_psi * d_psi > cfg.gnss_gate_chi2 * (p[_YAW, _YAW] + yaw_var):
                 psi = yaw_var = None  # position fine, heading implausible: fuse the position only
-        status = self.ekf.fuse_pose(pos, cfg.gnss_pos_std_m ** 2, psi, yaw_var)  # type: ignore[union-attr]
+        status = self.ekf.fuse_pose(pos, std_m ** 2, psi, yaw_var)  # type: ignore[union-attr]
         if status is StepStatus.SUCCESS:
             self._last_fix_t = t_s
             self._last_abs_t = t_s
@@ -336,7 +361,7 @@ class PoseFilter:
         """Squared Mahalanobis distance of a GNSS position (2,) [m] from the prediction."""
         p = self.ekf.P  # type: ignore[union-attr]
         d = pos - self.ekf.x[EkfState.POS]  # type: ignore[union-attr]
-        s = p[EkfState.POS, EkfState.POS] + np.eye(2) * self.config.gnss_pos_std_m ** 2
+        s = p[EkfState.POS, EkfState.POS] + np.eye(2) * self.gnss_std_m ** 2
         with np.errstate(all="ignore"):
             try:
                 return float(d @ np.linalg.solve(s, d))
@@ -378,6 +403,8 @@ class PoseFilter:
     def summary(self) -> dict:
         out = {"gnss_rejected": self.n_gnss_rejected, "gnss_init_rejected": self.n_gnss_init_rejected,
                "gnss_suspect": self.gnss_check.summary(),
+               "gnss_std_m": {"configured": self.config.gnss_pos_std_m, "measured": self.fix_noise.std_m,
+                              "used": self.gnss_std_m if self.fix_noise.std_m is not None else None},
                "ekf_resets": self.ekf.n_resets if self.ekf is not None else 0}
         cal = self.calibration()
         if cal is not None:

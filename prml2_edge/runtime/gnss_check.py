@@ -10,13 +10,29 @@ with every GNSS correction left out. A fix changes that track only through the s
 car did not make. (A track from the CAN gyro alone drifts metres in 8 s on a car with 1.28 deg/s
 steps.)
 
-When the discrepancy exceeds ``tol_m + tol_per_m * distance`` the fixes are *suspect*: none is
-fused (the pose dead-reckons and its status says why), and the filter's position is moved back to
-where the odometry puts it from the start of the baseline (what it fused since then was the
-spoofer's). The tolerance grows with the filter's heading uncertainty at the baseline's start, and
-the check arms only after :attr:`~GnssCheckConfig.arm_fixes` trusted fixes (the filter has
-converged). While suspect, the fixes must move like the car over a whole baseline of suspect fixes
-*and* pass the filter's innovation gate, :attr:`~GnssCheckConfig.clear_fixes` times in a row: real
+When the discrepancy exceeds the tolerance the fixes are *suspect*: none is fused (the pose
+dead-reckons and its status says why), and the filter's position is moved back to where the
+odometry puts it from the start of the baseline (what it fused since then was the spoofer's).
+
+The tolerance is what the check does not know, added up (issue 28: a real car's uncalibrated gyro
+must not make genuine fixes look like a spoof):
+
+* the noise of the two end fixes, ``gnss_sigmas * sqrt(2) * sigma_fix``, where ``sigma_fix`` is the
+  larger of the configured GNSS noise and the one the fix stream shows (:class:`FixNoise`);
+* the odometry's own floor ``tol_m``, and ``tol_per_m`` (wheel scale) per metre driven;
+* the filter's heading uncertainty at the baseline's start, ``heading_sigmas * psi_std * distance``;
+* the yaw-rate error the filter has not calibrated yet: a rate error ``b`` turns the track by ``b t``,
+  which moves its end sideways by ``b T / 2`` per metre over a baseline of ``T`` seconds, so
+  ``rate_sigmas * rate_std * T / 2 * distance``, with ``rate_std`` the filter's yaw-offset uncertainty.
+
+The check arms only after :attr:`~GnssCheckConfig.arm_fixes` trusted fixes *and* once that yaw-rate
+uncertainty is below :attr:`~GnssCheckConfig.arm_rate_std_dps` (the filter has learned the gyro):
+until then a disagreement teaches the calibration instead of refusing the fixes (without the
+calibration states nothing learns the offset: the prior widens the tolerance and the check arms
+on the fix count alone).
+
+While suspect, the fixes must move like the car over a whole baseline of suspect fixes *and* pass
+the filter's innovation gate, :attr:`~GnssCheckConfig.clear_fixes` times in a row: real
 GNSS that returns is fused again; a walk is never consistent over a full baseline, and a spoofer
 that stops and holds its false position stays outside the gate while the filter is confident (once
 its dead-reckoning uncertainty covers the false position, the two cannot be told apart).
@@ -36,12 +52,55 @@ class GnssCheckConfig:
     enabled: bool = True
     baseline_s: float = 8.0  # compare displacements over this long
     min_baseline_s: float = 3.0  # ... at least this long (after a restart)
-    tol_m: float = 2.0  # GNSS noise of the two end fixes (0.5 m each) and the odometry's
+    tol_m: float = 0.6  # the odometry's own error over a baseline ...
+    gnss_sigmas: float = 2.0  # ... plus this many sigmas of the difference of two fixes (0.5 m each: 1.4 m)
     tol_per_m: float = 0.01  # scale and gyro error per metre driven ...
     heading_sigmas: float = 1.0  # ... plus this many of the filter's heading sigmas at the baseline's start
+    rate_sigmas: float = 1.0  # ... plus this many of its yaw-rate offset sigmas, integrated over the baseline
     clear_fixes: int = 20  # consecutive agreeing fixes (2 s at 10 Hz) end a suspicion
     fused_gap_s: float = 0.5  # a suspicion moves the pose back only when fixes were being fused up to then
     arm_fixes: int = 100  # the check arms after this many trusted fixes (10 s at 10 Hz: the filter has converged)
+    arm_rate_std_dps: float = 0.1  # ... and once the filter's yaw-rate offset is known this well
+
+
+class FixNoise:
+    """The fix stream's own noise per axis [m], from its second differences (model-free).
+
+    At a steady fix rate, ``p[k+1] - 2 p[k] + p[k-1]`` is white noise of variance ``6 sigma^2`` plus
+    the car's acceleration times ``dt^2`` (centimetres at 10 Hz). A robust scale (the median of the
+    squares over the last :attr:`WINDOW` triples, both axes) gives ``sigma`` from ten fixes on; a
+    consumer receiver's 1.5 m shows as 1.5 m where the configuration says 0.5 m. Slow, correlated
+    errors (multipath) do not show here, and need no wider gate: the filter follows them. Until five
+    triples are in (the first half second at 10 Hz) the noise is not known: :attr:`std_m` is None
+    (the filter then assumes :data:`UNKNOWN_FACTOR` times its setting).
+    """
+
+    WINDOW = 100  # triples kept
+    MIN_TRIPLES = 5
+    MAX_STD_M = 5.0  # a fix stream noisier than this is not made trustworthy by a wider gate
+    UNKNOWN_FACTOR = 3.0
+    _MEDIAN_CHI2_1 = 0.4549364  # median of a chi-square with one degree of freedom
+
+    def __init__(self) -> None:
+        self._fixes: collections.deque[tuple[float, float, float]] = collections.deque(maxlen=3)
+        self._d2: collections.deque[float] = collections.deque(maxlen=2 * self.WINDOW)
+        self.std_m: float | None = None
+
+    def add(self, t: float, x: float, y: float) -> None:
+        """One fix (a fix already added, by its time, is not added again)."""
+        if self._fixes and t <= self._fixes[-1][0]:
+            return
+        self._fixes.append((t, x, y))
+        if len(self._fixes) < 3:
+            return
+        (t0, x0, y0), (t1, x1, y1), (t2, x2, y2) = self._fixes
+        dt0, dt1 = t1 - t0, t2 - t1
+        if not (dt0 > 0.0 and abs(dt1 - dt0) <= 0.2 * dt0 and dt0 <= 0.5):
+            return  # uneven or sparse fixes: their second difference mixes noise and motion
+        self._d2.extend((x2 - 2 * x1 + x0, y2 - 2 * y1 + y0))
+        if len(self._d2) >= 2 * self.MIN_TRIPLES:
+            var = float(np.median(np.square(self._d2))) / (6.0 * self._MEDIAN_CHI2_1)
+            self.std_m = min(math.sqrt(var), self.MAX_STD_M)
 
 
 @dataclass
@@ -51,6 +110,7 @@ class _Entry:
     odo: tuple[float, float]
     pose: tuple[float, float]  # the filter's position then
     psi_std: float = 0.0  # the filter's heading uncertainty then [rad]
+    rate_std: float = 0.0  # the filter's yaw-rate offset uncertainty then [rad/s]
 
 
 class GnssCheck:
@@ -73,7 +133,10 @@ class GnssCheck:
         self._suspect_hist: collections.deque[_Entry] = collections.deque()
         self._trusted = 0  # fixes trusted since the start (the check arms after arm_fixes)
         self._psi_std0 = 0.0  # the filter's heading uncertainty when the suspicion began [rad]
+        self._rate_std0 = 0.0  # ... and its yaw-rate offset uncertainty [rad/s]
+        self.fix_std_m = 0.5  # the GNSS noise per axis the tolerance assumes (set by the filter)
         self.last_discrepancy_m = 0.0
+        self._now = 0.0
 
     def step(self, x_m: float, y_m: float) -> None:
         """The filter's position after this step's prediction and measurements, before any GNSS fix: the
@@ -93,19 +156,25 @@ class GnssCheck:
         g = (fix_xy[0] - old.fix[0], fix_xy[1] - old.fix[1])
         o = (self.odo[0] - old.odo[0], self.odo[1] - old.odo[1])
         dist = math.hypot(*o)
-        # the odometry's heading is the filter's from the baseline's start: its uncertainty widens the tolerance
-        tol = cfg.tol_m + (cfg.tol_per_m + cfg.heading_sigmas * old.psi_std) * dist
+        baseline = max(self._now - old.t, 0.0)
+        # the odometry's heading is the filter's from the baseline's start, and it turns with the yaw-rate error
+        # the filter has not calibrated: both widen the tolerance, as the fixes' own noise does
+        per_m = cfg.tol_per_m + cfg.heading_sigmas * old.psi_std + cfg.rate_sigmas * old.rate_std * baseline / 2.0
+        tol = cfg.tol_m + cfg.gnss_sigmas * math.sqrt(2.0) * self.fix_std_m + per_m * dist
         return math.hypot(g[0] - o[0], g[1] - o[1]), tol, old.t
 
     def check(self, t: float, fix_xy: tuple[float, float], pose_xy: tuple[float, float], in_gate: bool,
-              psi_std: float = 0.0) -> tuple[bool, np.ndarray | None]:
+              psi_std: float = 0.0, rate_std: float = 0.0, converged: bool = True) -> tuple[bool, np.ndarray | None]:
         """One fix: ``(trusted, correction)``. ``correction`` (2,) is where to move the filter's position when a
         suspicion starts (the odometry's position from the baseline's start), else None. ``in_gate``: the fix
-        passes the filter's innovation gate; ``psi_std`` the filter's heading uncertainty now [rad]."""
+        passes the filter's innovation gate; ``psi_std`` the filter's heading uncertainty now [rad];
+        ``rate_std`` its yaw-rate offset uncertainty [rad/s] (module docstring); ``converged``: False while the
+        filter is still learning that offset (the check does not arm then)."""
         cfg = self.config
         if not cfg.enabled:
             return True, None
-        entry = _Entry(t, fix_xy, (self.odo[0], self.odo[1]), pose_xy, min(psi_std, 0.1))
+        self._now = t
+        entry = _Entry(t, fix_xy, (self.odo[0], self.odo[1]), pose_xy, min(psi_std, 0.1), min(rate_std, 0.05))
         if self.suspect:
             return self._while_suspect(t, entry, in_gate), None
         hist = self.history
@@ -115,7 +184,8 @@ class GnssCheck:
         recent = bool(hist) and t - hist[-1].t <= cfg.fused_gap_s  # the filter was following the fixes
         while len(hist) > 1 and t - hist[1].t >= cfg.baseline_s:
             hist.popleft()
-        if hist and t - hist[0].t >= cfg.min_baseline_s and self._trusted >= cfg.arm_fixes:
+        armed = self._trusted >= cfg.arm_fixes and converged
+        if hist and t - hist[0].t >= cfg.min_baseline_s and armed:
             disc, tol, t_old = self._disc(hist, fix_xy)
             self.last_discrepancy_m = disc
             if disc > tol:
@@ -127,6 +197,7 @@ class GnssCheck:
                 self._suspect_hist.clear()
                 self._suspect_hist.append(entry)
                 self._psi_std0 = old.psi_std
+                self._rate_std0 = old.rate_std
                 self.reason = (f"GNSS suspect: the fixes moved {disc:.1f} m away from the wheels' and gyro's track "
                                f"over {t - t_old:.1f} s (allowed {tol:.1f} m); not fused while they disagree")
                 if self.first_reason is None:
@@ -151,6 +222,7 @@ class GnssCheck:
         # the heading uncertainty as it was when the suspicion began: dead-reckoning without GNSS grows it, and a
         # tolerance growing with it would let a steady walk through
         entry.psi_std = min(entry.psi_std, self._psi_std0)
+        entry.rate_std = min(entry.rate_std, self._rate_std0)
         if t - sh[0].t >= cfg.baseline_s - 0.5:
             disc, tol, _ = self._disc(sh, entry.fix)
             self.last_discrepancy_m = disc
