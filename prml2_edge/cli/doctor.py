@@ -66,7 +66,8 @@ def _check_log(args: argparse.Namespace, cfg) -> int:
 def _check_data(args: argparse.Namespace) -> int:
     import json
 
-    from prml2_edge.data.conventions import check_folder, format_findings
+    from prml2_edge.data.conventions import format_findings
+    from prml2_edge.data.revsted import check_folder
 
     results = check_folder(args.data)
     failed = [r for r in results if r.result == "FAIL"]
