@@ -8,14 +8,14 @@ windows; its verdict is a timing on whatever else the box is doing, so the tests
 
 Usage::
 
-    .venv/bin/python benchmarks/doctor_inference.py [--repeats 20] [--runs 50] [--model export/default/prml2_edge.onnx]
+    .venv/bin/python benchmarks/doctor_inference.py [--repeats 20] [--runs 50] [--model PATH] [--threads N]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import re
+import sys
 import time
 from pathlib import Path
 
@@ -24,6 +24,9 @@ import numpy as np
 from prml2_edge.bench.machine import load_average, machine_info
 from prml2_edge.config import RuntimeConfig, with_overrides
 from prml2_edge.service.doctor import DEADLINE_MS, PASS, check_model
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import report  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "results" / "doctor_inference.json"
@@ -46,6 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", type=int, default=50, help="timed windows per check (default 50, the doctor's)")
     ap.add_argument("--model", help="ONNX model (default: the shipped one, as prml2 doctor)")
     ap.add_argument("--threads", type=int, help="ONNX Runtime intra-op threads (default: the runtime config's)")
+    ap.add_argument("--out", default=str(OUT), help=f"result JSON (default {OUT.relative_to(HERE.parent)})")
     args = ap.parse_args(argv)
     cfg = with_overrides(RuntimeConfig(), model={"path": args.model, "threads": args.threads})
     load_before = load_average()
@@ -64,12 +68,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{args.repeats} checks of {args.runs} runs on {checks[0]['provider']}: p50 median "
           f"{summary['p50_ms_median']:.2f} ms, p99 median {summary['p99_ms_median']:.2f} ms, max "
           f"{summary['p99_ms_max']:.2f} ms; {failed} over {DEADLINE_MS:.0f} ms (load before {load_before})")
-    out = {"benchmark": "doctor_inference", "model": cfg.model.path or "shipped", "runs": args.runs,
+    doc = {"benchmark": "doctor_inference", "model": cfg.model.path or "shipped", "runs": args.runs,
            "repeats": args.repeats, "threads": cfg.model.threads, "wall_s": time.time() - t0,
-           "load_average_before": load_before, "machine": machine_info(), "summary": summary, "checks": checks}
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(out, indent=1) + "\n")
-    print(f"wrote {OUT}")
+           "load_average_before": load_before, "load_average_end": load_average(), "machine": machine_info(),
+           "summary": summary, "checks": checks}
+    print(f"wrote {report.save(doc, args.out, update=False)}")
     return 0
 
 
