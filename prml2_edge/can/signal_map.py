@@ -224,67 +224,9 @@ def load_signal_map(path: str | Path) -> SignalMap:
     _check_keys(f"{path} [map]", head, _MAP_KEYS)
     if "dbc" not in head:
         raise ConfigError(f"{path} [map]: missing key 'dbc' (the DBC file this map is written for)")
-
-    raw_signals = _table(f"{path} [signals]", doc.get("signals", {}))
-    missing = [n for n in schema.SIGNAL_NAMES if n not in raw_signals]
-    if missing:
-        raise ConfigError(f"{path}: signal map lacks canonical signal(s) {', '.join(missing)}")
-    extra = sorted(set(raw_signals) - set(schema.SIGNAL_NAMES))
-    if extra:
-        raise ConfigError(f"{path}: unknown signal {extra[0]!r}; canonical names: {', '.join(schema.SIGNAL_NAMES)}")
-    specs = []
-    for name in schema.SIGNAL_NAMES:
-        where = f"{path} [signals.{name}]"
-        t = _table(where, raw_signals[name])
-        if t.get("absent", False) is not False:
-            specs.append(_absent_spec(where, name, t))
-            continue
-        _check_keys(where, t, _SIGNAL_KEYS)
-        for key in ("message", "signal"):
-            if key not in t:
-                raise ConfigError(f"{where}: missing key {key!r} (or absent = true for a signal this car lacks)")
-        kwargs: dict = {}
-        if isinstance(t["signal"], list):
-            kwargs["parts"] = _parts(where, t["signal"], t.get("part_scale"))
-            kwargs["signal"] = kwargs["parts"][0][0]
-        elif "part_scale" in t:
-            raise ConfigError(f"{where}: 'part_scale' needs signal = [list of DBC signals] to sum")
-        for key, kind in (("message", str), ("signal", str), ("scale", float), ("offset", float),
-                          ("rate_hz", float), ("valid", str), ("valid_value", int), ("sign", str)):
-            if key in t and key not in kwargs:
-                kwargs[key] = _typed(where, key, t[key], kind)
-        if kwargs.get("scale", 1.0) == 0.0:
-            raise ConfigError(f"{where}: scale must not be 0")
-        if kwargs.get("rate_hz", 50.0) <= 0.0:
-            raise ConfigError(f"{where}: rate_hz must be > 0")
-        specs.append(SignalSpec(name=name, **kwargs))
-
-    messages = {}
-    for msg_name, t in _table(f"{path} [messages]", doc.get("messages", {})).items():
-        where = f"{path} [messages.{msg_name}]"
-        t = _table(where, t)
-        _check_keys(where, t, _MESSAGE_KEYS)
-        for key in t:
-            _typed(where, key, t[key], str)
-        algo = t.get("checksum_algorithm")
-        if algo is not None and algo not in CHECKSUMS:
-            raise ConfigError(f"{where}: unknown checksum_algorithm {algo!r}; known: {', '.join(sorted(CHECKSUMS))}")
-        if ("checksum" in t) != ("checksum_algorithm" in t):
-            raise ConfigError(f"{where}: 'checksum' and 'checksum_algorithm' go together")
-        messages[msg_name] = MessageChecks(message=msg_name, **t)
-
-    gnss = None
-    if "gnss" in doc:
-        where = f"{path} [gnss]"
-        t = _table(where, doc["gnss"])
-        _check_keys(where, t, _GNSS_KEYS)
-        for key in ("message", "x", "y"):
-            if key not in t:
-                raise ConfigError(f"{where}: missing key {key!r}")
-        for key in t:
-            _typed(where, key, t[key], str)
-        gnss = GnssSpec(**t)
-
+    specs = _signal_specs(path, _table(f"{path} [signals]", doc.get("signals", {})))
+    messages = _message_checks(path, _table(f"{path} [messages]", doc.get("messages", {})))
+    gnss = _gnss_spec(f"{path} [gnss]", doc["gnss"]) if "gnss" in doc else None
     return SignalMap(
         name=str(_typed(f"{path} [map]", "name", head.get("name", path.stem), str)),
         path=path,
@@ -296,6 +238,73 @@ def load_signal_map(path: str | Path) -> SignalMap:
         messages=messages,
         gnss=gnss,
     )
+
+
+def _signal_specs(path: Path, raw_signals: dict) -> list[SignalSpec]:
+    """The ``[signals]`` table: every canonical signal once, no other, each read by :func:`_signal_spec`."""
+    missing = [n for n in schema.SIGNAL_NAMES if n not in raw_signals]
+    if missing:
+        raise ConfigError(f"{path}: signal map lacks canonical signal(s) {', '.join(missing)}")
+    extra = sorted(set(raw_signals) - set(schema.SIGNAL_NAMES))
+    if extra:
+        raise ConfigError(f"{path}: unknown signal {extra[0]!r}; canonical names: {', '.join(schema.SIGNAL_NAMES)}")
+    return [_signal_spec(f"{path} [signals.{name}]", name, raw_signals[name]) for name in schema.SIGNAL_NAMES]
+
+
+def _signal_spec(where: str, name: str, table: object) -> SignalSpec:
+    """One ``[signals.NAME]`` table: where the signal is on the bus, or what stands in for an absent one."""
+    t = _table(where, table)
+    if t.get("absent", False) is not False:
+        return _absent_spec(where, name, t)
+    _check_keys(where, t, _SIGNAL_KEYS)
+    for key in ("message", "signal"):
+        if key not in t:
+            raise ConfigError(f"{where}: missing key {key!r} (or absent = true for a signal this car lacks)")
+    kwargs: dict = {}
+    if isinstance(t["signal"], list):
+        kwargs["parts"] = _parts(where, t["signal"], t.get("part_scale"))
+        kwargs["signal"] = kwargs["parts"][0][0]
+    elif "part_scale" in t:
+        raise ConfigError(f"{where}: 'part_scale' needs signal = [list of DBC signals] to sum")
+    for key, kind in (("message", str), ("signal", str), ("scale", float), ("offset", float),
+                      ("rate_hz", float), ("valid", str), ("valid_value", int), ("sign", str)):
+        if key in t and key not in kwargs:
+            kwargs[key] = _typed(where, key, t[key], kind)
+    if kwargs.get("scale", 1.0) == 0.0:
+        raise ConfigError(f"{where}: scale must not be 0")
+    if kwargs.get("rate_hz", 50.0) <= 0.0:
+        raise ConfigError(f"{where}: rate_hz must be > 0")
+    return SignalSpec(name=name, **kwargs)
+
+
+def _message_checks(path: Path, raw_messages: dict) -> dict[str, MessageChecks]:
+    """The ``[messages.NAME]`` tables: each message's counter and checksum signals."""
+    messages = {}
+    for msg_name, t in raw_messages.items():
+        where = f"{path} [messages.{msg_name}]"
+        t = _table(where, t)
+        _check_keys(where, t, _MESSAGE_KEYS)
+        for key in t:
+            _typed(where, key, t[key], str)
+        algo = t.get("checksum_algorithm")
+        if algo is not None and algo not in CHECKSUMS:
+            raise ConfigError(f"{where}: unknown checksum_algorithm {algo!r}; known: {', '.join(sorted(CHECKSUMS))}")
+        if ("checksum" in t) != ("checksum_algorithm" in t):
+            raise ConfigError(f"{where}: 'checksum' and 'checksum_algorithm' go together")
+        messages[msg_name] = MessageChecks(message=msg_name, **t)
+    return messages
+
+
+def _gnss_spec(where: str, table: object) -> GnssSpec:
+    """The ``[gnss]`` table: the message and signals of the GNSS fix on the bus."""
+    t = _table(where, table)
+    _check_keys(where, t, _GNSS_KEYS)
+    for key in ("message", "x", "y"):
+        if key not in t:
+            raise ConfigError(f"{where}: missing key {key!r}")
+    for key in t:
+        _typed(where, key, t[key], str)
+    return GnssSpec(**t)
 
 
 def shipped_map_path(name: str) -> Path:

@@ -9,21 +9,31 @@ HELP = ("Check this box (CAN interfaces, ONNX Runtime providers, DBC/map/model c
 NEEDS: tuple[tuple[str, str], ...] = ()
 
 
+# the box's settings doctor checks, each in place of the runtime config's: (flag, metavar, what it names)
+_OVERRIDES: tuple[tuple[str, str | None, str], ...] = (
+    ("--interface", None, "python-can interface"),
+    ("--channel", None, "CAN channel"),
+    ("--map", "NAME|PATH", "signal map"),
+    ("--dbc", "PATH", "DBC file"),
+    ("--model", "PATH", "ONNX model"),
+)
+# recorded data doctor checks instead of this box: (flag, metavar, what it checks)
+_RECORDED: tuple[tuple[str, str, str], ...] = (
+    ("--log", "LOG", "a recorded CAN log of this car (any python-can format): check the map and DBC against it: "
+                     "every signal's frames, rate, range, resolution and validity, signals never seen, and signs and "
+                     "scales from physics (a few minutes with turns, some at low speed)"),
+    ("--data", "DIR", "a folder of ReV-StED-schema CSVs (or one CSV): check the sign conventions of the ground "
+                      "truth and the onboard columns from physics"),
+)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", metavar="TOML", help="runtime config to check (deploy/runtime.toml)")
-    parser.add_argument("--interface", help="python-can interface (overrides the config)")
-    parser.add_argument("--channel", help="CAN channel (overrides the config)")
-    parser.add_argument("--map", metavar="NAME|PATH", help="signal map (overrides the config)")
-    parser.add_argument("--dbc", metavar="PATH", help="DBC file (overrides the config)")
-    parser.add_argument("--model", metavar="PATH", help="ONNX model (overrides the config)")
+    for flag, metavar, what in _OVERRIDES:
+        parser.add_argument(flag, metavar=metavar, help=f"{what} (overrides the config)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
-    parser.add_argument("--log", metavar="LOG",
-                        help="a recorded CAN log of this car (any python-can format): check the map and DBC against "
-                             "it: every signal's frames, rate, range, resolution and validity, signals never seen, "
-                             "and signs and scales from physics (a few minutes with turns, some at low speed)")
-    parser.add_argument("--data", metavar="DIR",
-                        help="a folder of ReV-StED-schema CSVs (or one CSV): check the sign conventions of the "
-                             "ground truth and the onboard columns from physics")
+    for flag, metavar, what in _RECORDED:
+        parser.add_argument(flag, metavar=metavar, help=what)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -66,7 +76,8 @@ def _check_log(args: argparse.Namespace, cfg) -> int:
 def _check_data(args: argparse.Namespace) -> int:
     import json
 
-    from prml2_edge.data.conventions import check_folder, format_findings
+    from prml2_edge.data.conventions import format_findings
+    from prml2_edge.data.revsted import check_folder
 
     results = check_folder(args.data)
     failed = [r for r in results if r.result == "FAIL"]

@@ -100,19 +100,29 @@ def _rows(text: str, decoder_len: int) -> int | None:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from prml2_edge import __version__
-    from prml2_edge.errors import ConfigError, ModelError
-    from prml2_edge.training.checkpoint import load_model
-    from prml2_edge.training.export_onnx import (
-        compare_int8,
-        export_onnx,
-        metadata_for,
-        parity,
-        quantize_int8,
-        read_metadata,
-    )
+    from prml2_edge.training.export_onnx import export_onnx, read_metadata
 
     torch.set_num_threads(2)
+    out = _check_options(args)
+    model, meta = _load_model(args.checkpoint)
+    rows = _rows(args.rows, model.cfg.window_len - model.cfg.encoder_len)
+    fp32_path = out.with_name(out.stem + ".fp32.onnx") if (args.int8 or args.optimize) else out
+    export_onnx(model, meta, fp32_path, rows=rows)
+    windows, z_dec = _windows(model, args.data, args.parity_windows)
+    _check_parity(model, meta, fp32_path, windows, rows)
+    source = fp32_path  # what --int8 quantises: the fp32 graph, or the fused one with --optimize
+    if args.optimize:
+        source = _optimize(fp32_path, out.with_name(out.stem + ".opt.onnx") if args.int8 else out, windows)
+    if args.int8:
+        _quantize(args, meta, fp32_path, source, out, windows, z_dec)
+    read_metadata(out).check_schema(str(out))
+    return 0
+
+
+def _check_options(args: argparse.Namespace) -> Path:
+    """Refuse option values and combinations that cannot work, before anything is loaded; the ``--out`` path."""
+    from prml2_edge.errors import ConfigError
+
     if args.parity_windows < 100:
         raise ConfigError(f"--parity-windows must be at least 100, got {args.parity_windows}")
     if args.int8 and not args.data:
@@ -125,23 +135,32 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix != ".onnx":
         raise ConfigError(f"--out must end in .onnx, got {out.name}")
-    from prml2_edge.training.baselines.train import is_baseline_checkpoint, load_baseline
+    return out
 
-    if args.checkpoint.endswith(".onnx"):  # re-export an exported model (e.g. as a newest-row streaming graph)
+
+def _load_model(checkpoint: str):
+    """The model to export and its metadata: from a PRML2 or baseline checkpoint, or from an exported .onnx."""
+    from prml2_edge.training.baselines.train import is_baseline_checkpoint, load_baseline
+    from prml2_edge.training.checkpoint import load_model
+    from prml2_edge.training.export_onnx import metadata_for, read_metadata
+
+    if checkpoint.endswith(".onnx"):  # re-export an exported model (e.g. as a newest-row streaming graph)
         from dataclasses import replace
 
+        from prml2_edge import __version__
         from prml2_edge.training.export_onnx import model_from_onnx
 
-        model, _, _ = model_from_onnx(args.checkpoint)
-        meta = replace(read_metadata(args.checkpoint), version=__version__)
-    else:
-        model, ckpt = load_baseline(args.checkpoint) if is_baseline_checkpoint(args.checkpoint) else \
-            load_model(args.checkpoint)
-        meta = metadata_for(model, ckpt)
-    rows = _rows(args.rows, model.cfg.window_len - model.cfg.encoder_len)
-    fp32_path = out.with_name(out.stem + ".fp32.onnx") if (args.int8 or args.optimize) else out
-    export_onnx(model, meta, fp32_path, rows=rows)
-    windows, z_dec = _windows(model, args.data, args.parity_windows)
+        model, _, _ = model_from_onnx(checkpoint)
+        return model, replace(read_metadata(checkpoint), version=__version__)
+    model, ckpt = load_baseline(checkpoint) if is_baseline_checkpoint(checkpoint) else load_model(checkpoint)
+    return model, metadata_for(model, ckpt)
+
+
+def _check_parity(model, meta, fp32_path: Path, windows, rows: int | None) -> None:
+    """Print the export and its torch/onnxruntime parity; ModelError beyond :data:`PARITY_TOL`."""
+    from prml2_edge.errors import ModelError
+    from prml2_edge.training.export_onnx import parity
+
     diff = parity(model, fp32_path, windows)
     print(f"exported {fp32_path} ({fp32_path.stat().st_size / 1e6:.2f} MB, preset {meta.preset}, input 1x{meta.L}x9, "
           f"output the newest {rows or meta.L - meta.H} decoder step(s))")
@@ -150,32 +169,36 @@ def run(args: argparse.Namespace) -> int:
     if not (diff["mean"] <= PARITY_TOL and diff["var"] <= PARITY_TOL):
         raise ModelError(f"onnxruntime output differs from torch by {max(diff['mean'], diff['var']):.2e}; "
                          "report this with the checkpoint")
-    source = fp32_path  # what --int8 quantises: the fp32 graph, or the fused one with --optimize
-    if args.optimize:
-        from prml2_edge.training.quantize import max_output_difference, optimize_transformer
 
-        opt_path = out.with_name(out.stem + ".opt.onnx") if args.int8 else out
-        fused = optimize_transformer(fp32_path, opt_path)
-        diff = max_output_difference(fp32_path, opt_path, windows)
-        applied = ", ".join(f"{k} {v}" for k, v in sorted(fused.items())) or "none"
-        print(f"optimised: {opt_path} ({opt_path.stat().st_size / 1e6:.2f} MB); fusions applied: {applied}; "
-              f"max |d mean| against the fp32 graph {diff['mean']:.2e}, max |d var| {diff['var']:.2e}")
-        source = opt_path
-    if args.int8:
-        if args.int8 == "static":
-            from prml2_edge.training.quantize import quantize_static_int8, simulated_windows
 
-            calibration, _ = simulated_windows(args.calibration_windows, L=meta.L, H=meta.H)
-            quantize_static_int8(fp32_path, out, calibration)
-            how = f"static QDQ, calibrated on {len(calibration)} simulated windows"
-        else:
-            quantize_int8(source, out)
-            how = "dynamic" + (", on the optimised graph" if args.optimize else "")
-        report = compare_int8(fp32_path, out, windows, z_dec)
-        print(f"int8 ({how}): {out} ({out.stat().st_size / 1e6:.2f} MB); z RMSE on {report['n_windows']} "
-              "validation windows (before the guard), fp32 -> int8:")
-        for name in report["fp32"]:
-            a, b = report["fp32"][name], report["int8"][name]
-            print(f"  {name:<14} {a:.4f} -> {b:.4f}  ({100 * (b - a) / a:+.1f} %)")
-    read_metadata(out).check_schema(str(out))
-    return 0
+def _optimize(fp32_path: Path, opt_path: Path, windows) -> Path:
+    """``--optimize``: fuse the attentions into ``opt_path``, print the fusions and the difference; ``opt_path``."""
+    from prml2_edge.training.quantize import max_output_difference, optimize_transformer
+
+    fused = optimize_transformer(fp32_path, opt_path)
+    diff = max_output_difference(fp32_path, opt_path, windows)
+    applied = ", ".join(f"{k} {v}" for k, v in sorted(fused.items())) or "none"
+    print(f"optimised: {opt_path} ({opt_path.stat().st_size / 1e6:.2f} MB); fusions applied: {applied}; "
+          f"max |d mean| against the fp32 graph {diff['mean']:.2e}, max |d var| {diff['var']:.2e}")
+    return opt_path
+
+
+def _quantize(args: argparse.Namespace, meta, fp32_path: Path, source: Path, out: Path, windows, z_dec) -> None:
+    """``--int8``: quantise into ``out`` (static: from ``fp32_path``; dynamic: from ``source``); print the z RMSE."""
+    from prml2_edge.training.export_onnx import compare_int8, quantize_int8
+
+    if args.int8 == "static":
+        from prml2_edge.training.quantize import quantize_static_int8, simulated_windows
+
+        calibration, _ = simulated_windows(args.calibration_windows, L=meta.L, H=meta.H)
+        quantize_static_int8(fp32_path, out, calibration)
+        how = f"static QDQ, calibrated on {len(calibration)} simulated windows"
+    else:
+        quantize_int8(source, out)
+        how = "dynamic" + (", on the optimised graph" if args.optimize else "")
+    report = compare_int8(fp32_path, out, windows, z_dec)
+    print(f"int8 ({how}): {out} ({out.stat().st_size / 1e6:.2f} MB); z RMSE on {report['n_windows']} "
+          "validation windows (before the guard), fp32 -> int8:")
+    for name in report["fp32"]:
+        a, b = report["fp32"][name], report["int8"][name]
+        print(f"  {name:<14} {a:.4f} -> {b:.4f}  ({100 * (b - a) / a:+.1f} %)")

@@ -39,48 +39,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import can
-
     from prml2_edge.cli.runtime_app import build_pipeline, config_from_args, report_run
-    from prml2_edge.errors import ConfigError, DataError
-    from prml2_edge.progress import Progress
-    from prml2_edge.runtime.pipeline import run_source
-    from prml2_edge.runtime.sinks import CanSink
-    from prml2_edge.runtime.source import LogReplay, scan_log
+    from prml2_edge.errors import DataError
+    from prml2_edge.runtime.source import scan_log
 
     cfg = config_from_args(args)
-    if args.truth_tum and not args.truth:
-        raise ConfigError("--truth-tum needs --truth DRIVE.csv (the drive with the ground truth)")
-    if args.batch and args.realtime:
-        raise ConfigError("--batch replays as fast as it can; drop --realtime (or --batch)")
-    if not args.batch and (args.workers is not None or args.batch_size != 1):
-        raise ConfigError("--workers and --batch-size go with --batch")
+    _check_options(args)
     # A broken or cut-off log is still replayed up to the problem: every pose it yields is written,
     # then the problem is reported (one line, non-zero exit).
     n_frames, t_first, t_last, problem = scan_log(args.log)
     if n_frames == 0:
         raise DataError(problem or f"{args.log}: CAN log holds no frames")
-    extra = []
-    if args.can_out:
-        from pathlib import Path
-
-        Path(args.can_out).parent.mkdir(parents=True, exist_ok=True)
-        extra.append(CanSink(can.Logger(args.can_out)))
-    truth = None
-    if args.truth:
-        from prml2_edge.data.revsted import load_drive
-        from prml2_edge.runtime.pipeline import MemorySink
-
-        truth = load_drive(args.truth, require_ground_truth=True)
-        memory = MemorySink()
-        extra.append(memory)
-    feed = None
-    if getattr(args, "gnss", None):
-        from prml2_edge.runtime.gnss_input import FixFeed, LocalFrame, check_overlap, load_fixes
-
-        fixes = load_fixes(args.gnss, LocalFrame.parse(args.gnss_origin), args.gnss_time_offset)
-        check_overlap(fixes, t_first, t_last, args.gnss)
-        feed = FixFeed(fixes, str(args.gnss))
+    extra, memory, truth = _extra_sinks(args)
+    feed = _gnss_feed(args, t_first, t_last)
     pipeline = build_pipeline(cfg, extra, external_gnss=feed is not None)
     if feed is not None:
         pipeline.add_gnss_source(feed)
@@ -90,42 +61,108 @@ def run(args: argparse.Namespace) -> int:
           f"{pipeline.model.describe()}"
           + (" (the log is damaged: replaying the frames before the damage)" if problem else ""))
     try:
-        if args.batch:
-            from prml2_edge.runtime.offline import run_offline
-
-            with Progress(n_frames, desc="replay", unit="frames") as bar:
-                error = run_offline(pipeline, args.log, batch=args.batch_size, workers=args.workers,
-                                    progress=bar).problem
-        else:
-            with LogReplay(args.log, realtime=args.realtime, speed=args.speed) as source, \
-                    Progress(n_frames, desc="replay", unit="frames") as bar:
-                run_source(pipeline, source, progress=bar)
-                error = source.error
+        error = _replay(pipeline, args, n_frames)
     finally:
         pipeline.close()
     summary = pipeline.summary()
     if feed is not None:
         summary["gnss_input"] = feed.summary()
-    extra_lines = []
-    if args.batch:
-        off = summary["offline"] = pipeline.offline
-        t = off["timing_s"]
-        extra_lines.append(f"offline: {off['windows']} windows, {off['workers']} worker(s), {off['batch']} per call; "
-                           f"decode+assemble {t['decode_assemble']:.1f} s, filter {t['filter']:.1f} s, inference "
-                           f"{t['inference_workers']:.1f} s (summed over workers), filter waited "
-                           f"{t['filter_waited_for_inference']:.1f} s")
+    extra_lines = _offline_lines(pipeline, summary) if args.batch else []
     if truth is not None:
-        from prml2_edge.runtime.demo import compare_with_truth, truth_lines
-
-        arrays = memory.arrays()
-        summary["truth"] = compare_with_truth(arrays, truth)
-        extra_lines = truth_lines(summary["truth"])
-        if args.truth_tum:
-            from prml2_edge.evaluation.tum import write_tum
-            from prml2_edge.runtime.demo import align_with_truth
-
-            true_pose, _, ok = align_with_truth(arrays, truth)
-            write_tum(args.truth_tum, arrays["t_s"][ok], true_pose[ok])
+        extra_lines = _truth_lines(args, memory, truth, summary)
     # A replay that could not do its job fails: a model that never ran means a pose from nothing but the filter.
     return report_run(pipeline, summary, args.summary_json, extra_lines,
                       error=error or problem or pipeline.model_never_ran())
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """Refuse option combinations that cannot work together, before the log is read."""
+    from prml2_edge.errors import ConfigError
+
+    if args.truth_tum and not args.truth:
+        raise ConfigError("--truth-tum needs --truth DRIVE.csv (the drive with the ground truth)")
+    if args.batch and args.realtime:
+        raise ConfigError("--batch replays as fast as it can; drop --realtime (or --batch)")
+    if not args.batch and (args.workers is not None or args.batch_size != 1):
+        raise ConfigError("--workers and --batch-size go with --batch")
+
+
+def _extra_sinks(args: argparse.Namespace) -> tuple[list, object, object]:
+    """The sinks besides the configured ones: ``--can-out``, and with ``--truth`` a memory of every step.
+
+    Returns ``(sinks, memory sink or None, truth drive or None)``.
+    """
+    extra: list = []
+    if args.can_out:
+        from pathlib import Path
+
+        import can
+
+        from prml2_edge.runtime.sinks import CanSink
+
+        Path(args.can_out).parent.mkdir(parents=True, exist_ok=True)
+        extra.append(CanSink(can.Logger(args.can_out)))
+    memory = truth = None
+    if args.truth:
+        from prml2_edge.data.revsted import load_drive
+        from prml2_edge.runtime.pipeline import MemorySink
+
+        truth = load_drive(args.truth, require_ground_truth=True)
+        memory = MemorySink()
+        extra.append(memory)
+    return extra, memory, truth
+
+
+def _gnss_feed(args: argparse.Namespace, t_first: float, t_last: float):
+    """``--gnss FILE``'s fixes as a feed merged by time, checked to overlap the log; None without ``--gnss``."""
+    if not getattr(args, "gnss", None):
+        return None
+    from prml2_edge.runtime.gnss_input import FixFeed, LocalFrame, check_overlap, load_fixes
+
+    fixes = load_fixes(args.gnss, LocalFrame.parse(args.gnss_origin), args.gnss_time_offset)
+    check_overlap(fixes, t_first, t_last, args.gnss)
+    return FixFeed(fixes, str(args.gnss))
+
+
+def _replay(pipeline, args: argparse.Namespace, n_frames: int):
+    """Run the log through the pipeline (streaming, or the offline schedule with ``--batch``); the log's error."""
+    from prml2_edge.progress import Progress
+
+    if args.batch:
+        from prml2_edge.runtime.offline import run_offline
+
+        with Progress(n_frames, desc="replay", unit="frames") as bar:
+            return run_offline(pipeline, args.log, batch=args.batch_size, workers=args.workers,
+                               progress=bar).problem
+    from prml2_edge.runtime.pipeline import run_source
+    from prml2_edge.runtime.source import LogReplay
+
+    with LogReplay(args.log, realtime=args.realtime, speed=args.speed) as source, \
+            Progress(n_frames, desc="replay", unit="frames") as bar:
+        run_source(pipeline, source, progress=bar)
+        return source.error
+
+
+def _offline_lines(pipeline, summary: dict) -> list[str]:
+    """The offline schedule's figures: into the summary, and one line for the report."""
+    off = summary["offline"] = pipeline.offline
+    t = off["timing_s"]
+    return [f"offline: {off['windows']} windows, {off['workers']} worker(s), {off['batch']} per call; "
+            f"decode+assemble {t['decode_assemble']:.1f} s, filter {t['filter']:.1f} s, inference "
+            f"{t['inference_workers']:.1f} s (summed over workers), filter waited "
+            f"{t['filter_waited_for_inference']:.1f} s"]
+
+
+def _truth_lines(args: argparse.Namespace, memory, truth, summary: dict) -> list[str]:
+    """Score the replayed steps against ``--truth`` (into the summary; ``--truth-tum`` written); the report lines."""
+    from prml2_edge.runtime.demo import compare_with_truth, truth_lines
+
+    arrays = memory.arrays()
+    summary["truth"] = compare_with_truth(arrays, truth)
+    if args.truth_tum:
+        from prml2_edge.evaluation.tum import write_tum
+        from prml2_edge.runtime.demo import align_with_truth
+
+        true_pose, _, ok = align_with_truth(arrays, truth)
+        write_tum(args.truth_tum, arrays["t_s"][ok], true_pose[ok])
+    return truth_lines(summary["truth"])

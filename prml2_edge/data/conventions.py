@@ -15,12 +15,15 @@ load without a word and train or evaluate on mirrored physics, so after loading:
   against the yaw rate at low speed, the wheels against each other and the speedometer.
 
 A check that cannot decide (a straight drive, a parked car) is skipped, never failed.
+
+The checks work on a loaded drive and read no files: :mod:`prml2_edge.data.revsted`, the loader, calls them
+(:func:`~prml2_edge.data.revsted.load_drive` refuses a mirrored file; :func:`~prml2_edge.data.revsted.check_folder`
+checks the CSVs of a folder), never the other way round.
 """
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -161,27 +164,6 @@ def _ground_truth(file: str, drive, yaw_col: str) -> list[ConventionFinding]:
 def first_failure(drive, header: set[str] | None = None) -> ConventionFinding | None:
     """The first failed convention check of ``drive``, or None."""
     return next((f for f in check_drive(drive, header) if f.result == FAIL), None)
-
-
-def check_folder(path: str | Path) -> list[ConventionFinding]:
-    """Convention checks of one CSV or every ``*.csv`` under ``path`` (``drives/`` of a dataset included)."""
-    from prml2_edge.data.revsted import load_drive
-    from prml2_edge.errors import DataError
-
-    path = Path(path)
-    files = [path] if path.is_file() else sorted(path.rglob("*.csv"))
-    if not files:
-        raise DataError(f"{path}: no CSV files (a ReV-StED-schema CSV, or a folder of them)")
-    out = []
-    for f in files:
-        drive = load_drive(f, check_conventions=False)
-        out += check_drive(drive, _header(f))
-    return out
-
-
-def _header(path: Path) -> set[str]:
-    with open(path, encoding="utf-8-sig") as f:
-        return {h.strip() for h in f.readline().split(",")}
 
 
 def format_findings(findings: list[ConventionFinding]) -> str:

@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from prml2_edge import schema
+from prml2_edge.data.conventions import ConventionFinding, check_drive, first_failure
 from prml2_edge.errors import DataError
 
 TIME_COLUMN = "INS_time_sec"
@@ -335,12 +336,28 @@ def load_drive(path: str | Path, *, require_ground_truth: bool = False, check_co
     drive = Drive(name=path.stem, path=path, t_s=t_s, onboard=onboard, z_gt=z_gt, pose_gt=pose_gt,
                   meta=meta, repairs=repairs)
     if check_conventions:
-        from prml2_edge.data.conventions import first_failure
-
         bad = first_failure(drive, set(header))
         if bad is not None:
             raise DataError(bad.line() + " (prml2 doctor --data FILE lists every check)")
     return drive
+
+
+def check_folder(path: str | Path) -> list[ConventionFinding]:
+    """Convention checks of one CSV or every ``*.csv`` under ``path`` (``drives/`` of a dataset included)."""
+    path = Path(path)
+    files = [path] if path.is_file() else sorted(path.rglob("*.csv"))
+    if not files:
+        raise DataError(f"{path}: no CSV files (a ReV-StED-schema CSV, or a folder of them)")
+    out = []
+    for f in files:
+        drive = load_drive(f, check_conventions=False)
+        out += check_drive(drive, _header(f))
+    return out
+
+
+def _header(path: Path) -> set[str]:
+    with open(path, encoding="utf-8-sig") as f:
+        return {h.strip() for h in f.readline().split(",")}
 
 
 def _fmt_for_step(step: float) -> str:

@@ -153,8 +153,27 @@ def inject(frames: Iterable[can.Message], faults: list[Fault], db: cantools.data
     counts = counts if counts is not None else InjectionCounts()
     recoder = _Recoder(db)
     ids = {m.name: m.frame_id for m in db.messages}
-    known_ids = sorted(ids.values())
-    # one-shot insertions (error frames, random bursts), each frame sent at its own time, in order
+    queue = _one_shot_frames(faults, rng, sorted(ids.values()), counts)
+    stuck_at: dict[int, float] = {}  # fault index -> the value a stuck signal holds
+    intruders = _Intruders(faults, ids)
+    for msg in frames:
+        t = float(msg.timestamp)
+        out: list[can.Message] = []
+        while queue and queue[-1].timestamp <= t:
+            out.append(queue.pop())
+        msg, copies = _apply_faults(msg, t, faults, ids, recoder, counts, stuck_at)
+        out.extend([msg] * copies)
+        if copies > 1:
+            counts._add(counts.added, "duplicate", copies - 1)
+        out += intruders.frames_after(msg, t, counts)
+        counts.frames_out += len(out)
+        yield from out
+
+
+def _one_shot_frames(faults: list[Fault], rng: np.random.Generator, known_ids: list[int],
+                     counts: InjectionCounts) -> list[can.Message]:
+    """The frames the one-shot insertions add (error frames, random bursts), each at its own time; newest first,
+    so that ``pop()`` takes the oldest."""
     queue: list[can.Message] = []
     for f in faults:
         if f.kind in ("error_frames", "random_burst"):
@@ -165,72 +184,79 @@ def inject(frames: Iterable[can.Message], faults: list[Fault], db: cantools.data
                                          is_extended_id=True, data=bytes(8), channel="vcan0")
                              if f.kind == "error_frames" else random_frame(rng, t_j, known_ids))
             counts._add(counts.added, f.kind, f.count)
-    queue.sort(key=lambda m: m.timestamp, reverse=True)  # pop() takes the oldest
-    stuck_at: dict[int, float] = {}  # fault index -> the value a stuck signal holds
-    recorded: dict[int, list[can.Message]] = {}  # intruder faults: frames of their message, to replay
-    period: dict[int, float] = {}
-    last_t: dict[int, float] = {}
-    for msg in frames:
-        t = float(msg.timestamp)
-        out: list[can.Message] = []
-        while queue and queue[-1].timestamp <= t:
-            out.append(queue.pop())
-        keep = True
-        copies = 1
-        for f in faults:
-            if not f.active(t) or f.kind in ("error_frames", "random_burst"):
+    queue.sort(key=lambda m: m.timestamp, reverse=True)
+    return queue
+
+
+def _apply_faults(msg: can.Message, t: float, faults: list[Fault], ids: dict[str, int], recoder: _Recoder,
+                  counts: InjectionCounts, stuck_at: dict[int, float]) -> tuple[can.Message, int]:
+    """The faults active at ``t`` applied to one frame, in order: (the frame as edited, how many times it is sent:
+    0 when a fault drops it, 2 while ``duplicate`` is active)."""
+    copies = 1
+    for f in faults:
+        if not f.active(t) or f.kind in ("error_frames", "random_burst"):
+            continue
+        if f.kind == "bus_silent" or (f.kind == "drop_message" and msg.arbitration_id == ids.get(f.message)):
+            counts._add(counts.dropped, f.kind)
+            return msg, 0
+        if f.kind in ("freeze_signal", "out_of_range") and msg.arbitration_id == ids.get(f.message):
+            msg = recoder.set(msg, f.signal, f.value)  # type: ignore[arg-type]
+            counts._add(counts.edited, f.kind)
+        elif f.kind == "checksum" and msg.arbitration_id == ids.get(f.message) and len(msg.data) > 0:
+            data = bytearray(msg.data)
+            data[0] ^= 0x5A
+            msg = _copy(msg, data=bytes(data))
+            counts._add(counts.edited, f.kind)
+        elif f.kind == "time_shift":
+            msg = _copy(msg, timestamp=msg.timestamp + f.value)
+            counts._add(counts.edited, f.kind)
+        elif f.kind == "duplicate":
+            copies = 2
+        elif f.kind in ("offset", "scale", "stuck") and msg.arbitration_id == ids.get(f.message):
+            fi = faults.index(f)
+            now = recoder.get(msg, f.signal)  # type: ignore[arg-type]
+            value = now + f.value if f.kind == "offset" else now * f.value if f.kind == "scale" else \
+                stuck_at.setdefault(fi, now)
+            msg = recoder.set(msg, f.signal, value)  # type: ignore[arg-type]
+            counts._add(counts.edited, f.kind)
+        elif f.kind == "gnss_walk" and msg.arbitration_id == ids.get("GNSS_FIX"):
+            frac = min((t - f.t_start_s) / max(f.t_end_s - f.t_start_s, 1e-9), 1.0)
+            d = f.value * frac
+            az = np.radians(f.count)
+            x, y = recoder.get(msg, "GNSS_POS_X"), recoder.get(msg, "GNSS_POS_Y")
+            msg = recoder.set(msg, "GNSS_POS_X", x + d * np.sin(az), GNSS_POS_Y=y + d * np.cos(az))
+            counts._add(counts.edited, f.kind)
+    return msg, copies
+
+
+class _Intruders:
+    """The ``intruder`` faults: a second sender replaying a message's frames from ``value`` s ago."""
+
+    def __init__(self, faults: list[Fault], ids: dict[str, int]) -> None:
+        self.faults = faults
+        self.ids = ids
+        self.recorded: dict[int, list[can.Message]] = {}  # fault index -> frames of its message, to replay
+        self.period: dict[int, float] = {}
+        self.last_t: dict[int, float] = {}
+
+    def frames_after(self, msg: can.Message, t: float, counts: InjectionCounts) -> list[can.Message]:
+        """Record ``msg`` (sent or dropped) for the intruders on its message; the replayed frames that follow it."""
+        out = []
+        for fi, f in enumerate(self.faults):
+            if f.kind != "intruder" or msg.arbitration_id != self.ids.get(f.message):
                 continue
-            if f.kind == "bus_silent" or (f.kind == "drop_message" and msg.arbitration_id == ids.get(f.message)):
-                keep = False
-                counts._add(counts.dropped, f.kind)
-                break
-            if f.kind in ("freeze_signal", "out_of_range") and msg.arbitration_id == ids.get(f.message):
-                msg = recoder.set(msg, f.signal, f.value)  # type: ignore[arg-type]
-                counts._add(counts.edited, f.kind)
-            elif f.kind == "checksum" and msg.arbitration_id == ids.get(f.message) and len(msg.data) > 0:
-                data = bytearray(msg.data)
-                data[0] ^= 0x5A
-                msg = _copy(msg, data=bytes(data))
-                counts._add(counts.edited, f.kind)
-            elif f.kind == "time_shift":
-                msg = _copy(msg, timestamp=msg.timestamp + f.value)
-                counts._add(counts.edited, f.kind)
-            elif f.kind == "duplicate":
-                copies = 2
-            elif f.kind in ("offset", "scale", "stuck") and msg.arbitration_id == ids.get(f.message):
-                fi = faults.index(f)
-                now = recoder.get(msg, f.signal)  # type: ignore[arg-type]
-                value = now + f.value if f.kind == "offset" else now * f.value if f.kind == "scale" else \
-                    stuck_at.setdefault(fi, now)
-                msg = recoder.set(msg, f.signal, value)  # type: ignore[arg-type]
-                counts._add(counts.edited, f.kind)
-            elif f.kind == "gnss_walk" and msg.arbitration_id == ids.get("GNSS_FIX"):
-                frac = min((t - f.t_start_s) / max(f.t_end_s - f.t_start_s, 1e-9), 1.0)
-                d = f.value * frac
-                az = np.radians(f.count)
-                x, y = recoder.get(msg, "GNSS_POS_X"), recoder.get(msg, "GNSS_POS_Y")
-                msg = recoder.set(msg, "GNSS_POS_X", x + d * np.sin(az), GNSS_POS_Y=y + d * np.cos(az))
-                counts._add(counts.edited, f.kind)
-        if keep:
-            out.extend([msg] * copies)
-            if copies > 1:
-                counts._add(counts.added, "duplicate", copies - 1)
-        for fi, f in enumerate(faults):  # a second sender replaying this message's frames from f.value s ago
-            if f.kind != "intruder" or msg.arbitration_id != ids.get(f.message):
-                continue
-            rec = recorded.setdefault(fi, [])
+            rec = self.recorded.setdefault(fi, [])
             rec.append(msg)
-            if msg.arbitration_id in last_t:
-                period[fi] = t - last_t[msg.arbitration_id]
-            last_t[msg.arbitration_id] = t
+            if msg.arbitration_id in self.last_t:
+                self.period[fi] = t - self.last_t[msg.arbitration_id]
+            self.last_t[msg.arbitration_id] = t
             replay = None
             while rec and rec[0].timestamp <= t - f.value:
                 replay = rec.pop(0)  # the newest frame at least f.value s old, once each
             if f.active(t) and replay is not None:
-                out.append(_copy(replay, timestamp=t + 0.5 * period.get(fi, 0.0)))
+                out.append(_copy(replay, timestamp=t + 0.5 * self.period.get(fi, 0.0)))
                 counts._add(counts.added, f.kind)
-        counts.frames_out += len(out)
-        yield from out
+        return out
 
 
 def fault_schedule(duration_s: float, period_s: float = 60.0, start_s: float = 20.0, lies: bool = False) -> list[Fault]:

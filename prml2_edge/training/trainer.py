@@ -300,14 +300,7 @@ def fit(
     _check_data(data)
 
     torch.manual_seed(train_cfg.seed)
-    if init is not None:
-        if init.cfg != model_cfg:
-            raise ConfigError("fit(init=...): model_cfg must be the initial model's config")
-        model = init.train()
-    else:
-        model = Prml2Model(model_cfg, data.norm_mean, data.norm_std, data.z_mean, data.z_std)
-        if data.skip_rows is not None:
-            model.init_skip(*data.skip_rows)
+    model = _initial_model(data, model_cfg, init)
     optimizer = torch.optim.Adam(model.parameters(), lr=train_cfg.lr, weight_decay=train_cfg.weight_decay)
     counters: dict[str, float] = {"steps": 0, "skipped_nonfinite": 0, "skipped_exploding": 0,
                                   "grad_log_ema": math.nan}
@@ -318,9 +311,37 @@ def fit(
     if info.is_main:
         _start_metrics(out_dir, metrics_path, best_path, history if resume is not None else None)
     loop = _make_loop(model, optimizer, counters, model_cfg, train_cfg, info, len(data.train))
+    _run_epochs(loop, data, range(start_epoch, train_cfg.epochs), best_score, history, preset=preset,
+                out_dir=out_dir, progress=progress, on_epoch=on_epoch)
+    if info.is_main and not best_path.is_file() and last_path.is_file():
+        _keep_last_as_best(last_path, best_path)
+    if info.enabled:
+        torch.distributed.barrier()
+    return FitResult(out_dir=out_dir, best_path=best_path, last_path=last_path, metrics_path=metrics_path,
+                     history=history, wall_s=time.monotonic() - t_start, counters=dict(counters), model=model)
 
+
+def _initial_model(data: TrainData, model_cfg: ModelConfig, init: Prml2Model | None) -> Prml2Model:
+    """The model training starts from: ``init`` (its config must be ``model_cfg``), or a new one on ``data``."""
+    if init is not None:
+        if init.cfg != model_cfg:
+            raise ConfigError("fit(init=...): model_cfg must be the initial model's config")
+        return init.train()
+    model = Prml2Model(model_cfg, data.norm_mean, data.norm_std, data.z_mean, data.z_std)
+    if data.skip_rows is not None:
+        model.init_skip(*data.skip_rows)
+    return model
+
+
+def _run_epochs(loop: _Loop, data: TrainData, epochs: range, best_score: float, history: list[dict], *,
+                preset: str, out_dir: Path, progress: bool | None, on_epoch: Callable[[dict], None] | None) -> None:
+    """Train and validate each of ``epochs``; append its record to ``history``; rank 0 saves and reports it.
+
+    ``best_score`` is the best validation objective so far in the current stage (a new stage starts its own).
+    """
+    train_cfg = loop.cfg
     lr = math.nan
-    for epoch in range(start_epoch, train_cfg.epochs):
+    for epoch in epochs:
         stage = _stage_of(epoch, train_cfg)
         if epoch > 0 and stage != _stage_of(epoch - 1, train_cfg):
             best_score = math.inf  # a new stage: its own best
@@ -332,16 +353,10 @@ def fit(
             best_score = record["val_objective"]
         record["best"] = improved
         history.append(record)
-        if info.is_main:
+        if loop.info.is_main:
             _save_epoch(loop, record, history, improved, best_score, preset, data.fingerprint, out_dir, epoch, stage)
             if on_epoch is not None:
                 on_epoch(record)
-    if info.is_main and not best_path.is_file() and last_path.is_file():
-        _keep_last_as_best(last_path, best_path)
-    if info.enabled:
-        torch.distributed.barrier()
-    return FitResult(out_dir=out_dir, best_path=best_path, last_path=last_path, metrics_path=metrics_path,
-                     history=history, wall_s=time.monotonic() - t_start, counters=dict(counters), model=model)
 
 
 def _keep_last_as_best(last_path: Path, best_path: Path) -> None:

@@ -1,6 +1,7 @@
 """`prml2 doctor` on this machine (CPU only): it runs, reports a table, and each check can fail."""
 
 import json
+import re
 import subprocess
 import sys
 
@@ -20,9 +21,15 @@ def test_doctor_on_this_box_with_a_virtual_bus():
     report = json.loads(proc.stdout)
     by_name = {c["name"]: c for c in report["checks"]}
     warm = by_name["warm inference"]
-    # the latency check is a measurement: on a shared CI box a scheduling stall can put its p99 over 20 ms,
-    # which it then reports as such; every other check must pass, and the exit code follows the checks
-    assert "p99" in warm["detail"] and (warm["result"] == "PASS" or "> 20 ms" in warm["detail"]), warm
+    # the latency itself is a measurement (benchmarks/doctor_inference.py): on a shared box a scheduling stall can
+    # put its p99 over 20 ms, which the doctor then reports as such. Here only what holds at any load: it reports a
+    # p50 and a p99, positive and in order, and fails only for the deadline; every other check must pass, and the
+    # exit code follows the checks
+    timing = re.search(r"p50 ([0-9.]+) ms, p99 ([0-9.]+) ms on ", warm["detail"])
+    assert timing is not None, warm
+    p50, p99 = float(timing[1]), float(timing[2])
+    assert 0 < p50 <= p99, warm
+    assert warm["result"] == "PASS" or f"> {doctor.DEADLINE_MS:.0f} ms" in warm["detail"], warm
     assert all(c["result"] != "FAIL" for c in report["checks"] if c is not warm), proc.stdout + proc.stderr
     assert report["ok"] == (warm["result"] == "PASS") and proc.returncode == (0 if report["ok"] else 1)
     assert by_name["DBC and signal map"]["result"] == "PASS"
