@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
         summary["gnss_input"] = feed.summary()
     extra_lines = _offline_lines(pipeline, summary) if args.batch else []
     if truth is not None:
-        extra_lines = _truth_lines(args, memory, truth, summary)
+        extra_lines += _truth_lines(args, memory, truth, summary)
     # A replay that could not do its job fails: a model that never ran means a pose from nothing but the filter.
     return report_run(pipeline, summary, args.summary_json, extra_lines,
                       error=error or problem or pipeline.model_never_ran())
