@@ -14,7 +14,7 @@ Usage::
 
     .venv/bin/python benchmarks/latency.py [--quick] [--models edge,paper] [--threads 1,2]
 
-Writes ``benchmarks/results/latency.json`` and updates the table in ``benchmarks/README.md``.
+Writes ``benchmarks/results/latency.json`` and updates the table in ``docs/benchmarks.md``.
 """
 
 from __future__ import annotations

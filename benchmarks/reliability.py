@@ -29,7 +29,7 @@ families, two seeds) through the plausibility stage alone, counting false flags 
 
 The checks were tuned on the five training cars; ``suv_awd`` (held out of the benchmark's training
 too) was not looked at while tuning, so its rows say whether the checks hold on a car they never saw.
-JSON to ``benchmarks/results/reliability.json``; the table goes to ``benchmarks/README.md``.
+JSON to ``benchmarks/results/reliability.json``; the table goes to ``docs/reliability.md`` (``render_tables.py``).
 """
 
 from __future__ import annotations
@@ -339,16 +339,11 @@ def markdown(doc: dict) -> list[str]:
     return lines
 
 
-def update_readme(lines: list[str]) -> None:
-    path = HERE / "README.md"
-    text = path.read_text()
-    start, end = "<!-- reliability:start -->", "<!-- reliability:end -->"
-    block = start + "\n" + "\n".join(lines) + "\n" + end
-    if start in text:
-        text = text[:text.index(start)] + block + text[text.index(end) + len(end):]
-    else:
-        text = text.rstrip() + "\n\n" + block + "\n"
-    path.write_text(text)
+def update_readme() -> None:
+    """Re-render the result tables in the docs pages from ``benchmarks/results/`` (``render_tables.py``)."""
+    import render_tables
+
+    render_tables.render()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -363,7 +358,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-spoof", action="store_true")
     ap.add_argument("--spoof-only", action="store_true", help="only the GNSS spoof runs")
     ap.add_argument("--out", default=str(HERE / "results" / "reliability.json"))
-    ap.add_argument("--no-readme", action="store_true", help="do not rewrite the table in benchmarks/README.md")
+    ap.add_argument("--no-readme", action="store_true", help="do not rewrite the table in docs/reliability.md")
     args = ap.parse_args(argv)
     cars = [c.strip() for c in args.cars.split(",") if c.strip()]
     unknown = [c for c in cars if c not in CARS]
@@ -396,7 +391,7 @@ def main(argv: list[str] | None = None) -> int:
     lines = markdown(doc)
     print("\n".join(lines))
     if not args.no_readme:
-        update_readme(lines)
+        update_readme()
     return 0
 
 

@@ -1,4 +1,4 @@
-"""Render benchmark results (``benchmarks/results/*.json``) as text and as the table in ``benchmarks/README.md``."""
+"""Render benchmark results (``benchmarks/results/*.json``) as text and as the tables in ``docs/benchmarks.md``."""
 
 from __future__ import annotations
 
@@ -6,16 +6,6 @@ import json
 from pathlib import Path
 
 import targets as tg
-
-HERE = Path(__file__).resolve().parent
-RESULTS = HERE / "results"
-README = HERE / "README.md"
-START, END = "<!-- results:start -->", "<!-- results:end -->"
-
-
-def _load(name: str) -> dict | None:
-    path = RESULTS / f"{name}.json"
-    return json.loads(path.read_text()) if path.is_file() else None
 
 
 def _config_target(c: dict) -> float | None:
@@ -152,7 +142,7 @@ def targets_markdown(latency: dict | None) -> list[str]:
 
 
 def save(doc: dict, out: str | Path, update: bool = True) -> Path:
-    """Write a result ``doc`` as JSON to ``out`` and, unless ``update`` is False, refresh the README table."""
+    """Write a result ``doc`` as JSON to ``out`` and, unless ``update`` is False, refresh the docs' tables."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(doc, indent=1))
@@ -162,16 +152,7 @@ def save(doc: dict, out: str | Path, update: bool = True) -> Path:
 
 
 def update_readme() -> None:
-    """Replace the block between the result markers in ``benchmarks/README.md`` with the current results."""
-    latency, replay, training = _load("latency"), _load("replay"), _load("training")
-    block: list[str] = []
-    if latency:
-        block += targets_markdown(latency) + [""] + latency_markdown(latency) + [""]
-    if replay or training:
-        block += throughput_markdown(replay, training) + [""]
-    text = README.read_text() if README.is_file() else f"# Benchmarks\n\n{START}\n{END}\n"
-    if START not in text or END not in text:
-        text = text.rstrip() + f"\n\n{START}\n{END}\n"
-    head, rest = text.split(START, 1)
-    _, tail = rest.split(END, 1)
-    README.write_text(head + START + "\n" + "\n".join(block) + "\n" + END + tail)
+    """Re-render the result tables in the docs pages from ``benchmarks/results/`` (``render_tables.py``)."""
+    import render_tables
+
+    render_tables.render()

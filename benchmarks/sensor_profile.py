@@ -4,7 +4,9 @@ Measures, per signal, quantisation step, hold (run) lengths, change share and va
 on ``OBD_Sample.csv`` and on simulated drives (fixed seeds), prints a markdown table and
 writes JSON. Usage::
 
-    .venv/bin/python benchmarks/sensor_profile.py [--shared ../shared] [--minutes 10] [--json out/sensor_profile.json]
+    .venv/bin/python benchmarks/sensor_profile.py [--shared ../shared] [--minutes 10] [--json PATH]
+
+The JSON goes to ``benchmarks/results/sensor_profile.json`` unless ``--json`` says otherwise.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from prml2_edge.bench.machine import provenance
 from prml2_edge.data.profile import compare_profiles, signal_profile, speedometer_ratio
 from prml2_edge.data.revsted import load_drive
 from prml2_edge.data.simulate import simulate_drive
@@ -30,7 +33,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--shared", default=str(REPO.parent / "shared"), help="the shared folder with data/revsted")
     ap.add_argument("--minutes", type=float, default=10.0, help="simulated minutes (mixed family, mu 1.0)")
     ap.add_argument("--seeds", default="7,8,9", help="comma-separated simulator seeds")
-    ap.add_argument("--json", default=str(REPO / "out" / "sensor_profile.json"), help="JSON output path")
+    ap.add_argument("--json", default=str(REPO / "benchmarks" / "results" / "sensor_profile.json"),
+                    help="JSON output path")
     args = ap.parse_args(argv)
 
     real = load_drive(Path(args.shared) / "data" / "revsted" / "OBD_Sample.csv")
@@ -71,7 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     out.write_text(json.dumps({
         "rows": rows, "speedometer_ratio": {"real": ratio_real, "sim": ratio_sim}, "seeds": seeds,
         "minutes": args.minutes, "simulate_s": sim_s,
-        "machine": {"python": sys.version.split()[0], "platform": platform.platform(), "numpy": np.__version__},
+        "machine": {"python": sys.version.split()[0], "platform": platform.platform(), "numpy": np.__version__,
+                    **provenance()},
     }, indent=1) + "\n")
     print(f"wrote {out}")
     return 0 if all(r["step_ok"] and r["hold_ok"] and r["range_ok"] for r in rows) else 1

@@ -9,7 +9,7 @@ evaluate`` runs the same z through the tuned EKF; this integrator isolates the s
 
 Usage::
 
-    .venv/bin/python benchmarks/sim_realism.py [--drives 4] [--minutes 5] [--json out/sim_realism.json]
+    .venv/bin/python benchmarks/sim_realism.py [--drives 4] [--minutes 5] [--json benchmarks/results/sim_realism.json]
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--snow-drives", type=int, default=2, help="snow drives per car (variant 'now' only)")
     ap.add_argument("--minutes", type=float, default=5.0)
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--json", default=str(REPO / "out" / "sim_realism.json"))
+    ap.add_argument("--json", default=str(REPO / "benchmarks" / "results" / "sim_realism.json"))
     args = ap.parse_args(argv)
     fams = ("longitudinal", "lateral", "mixed", "mixed")
     jobs = []

@@ -1,6 +1,6 @@
 """Soak benchmark: a long simulated drive with injected faults, replayed as fast as possible.
 
-    .venv/bin/python benchmarks/soak.py --minutes 60 --json out/soak.json
+    .venv/bin/python benchmarks/soak.py --minutes 60 --json benchmarks/results/soak.json
 
 With ``--checks both`` (the default) the same faulty log is replayed twice, the signal cross-checks
 and the GNSS consistency check off (the runtime before them: the reference) and on, and the
@@ -119,7 +119,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--stride", type=int, default=1, help="a new model window every N rows (default 1)")
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--workdir", help="where the logs go (default: a temporary folder)")
-    parser.add_argument("--json", help="also write the result here")
+    parser.add_argument("--json", default=str(Path(__file__).resolve().parent / "results" / "soak.json"),
+                        help="also write the result here (default benchmarks/results/soak.json)")
     parser.add_argument("--checks", choices=("on", "off", "both"), default="both",
                         help="signal cross-checks and GNSS consistency: on, off, or both one after the other")
     parser.add_argument("--no-lies", dest="lies", action="store_false", help="only the original fault kinds")

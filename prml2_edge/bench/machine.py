@@ -11,6 +11,9 @@ from __future__ import annotations
 import ctypes
 import os
 import platform
+import shlex
+import subprocess
+import sys
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -63,8 +66,42 @@ def _version(module: str) -> str | None:
     return str(getattr(mod, "__version__", "unknown"))
 
 
+def provenance() -> dict:
+    """``{"commit", "command"}``: what produced a result, so that a table rendered from it can say so.
+
+    ``commit`` is the short hash of the git checkout this package runs from, ``+dirty`` when tracked files have
+    uncommitted changes, None outside a checkout (an installed wheel). ``command`` is this process's command line,
+    a script as ``python PATH`` relative to the checkout, the console script as ``prml2``.
+    """
+    root = Path(__file__).resolve().parents[2]
+    commit = None
+
+    def git(*args: str) -> str | None:
+        try:
+            out = subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=10)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return out.stdout.strip() if out.returncode == 0 else None
+
+    top = git("rev-parse", "--show-toplevel")
+    if top and Path(top).resolve() == root:
+        commit = git("rev-parse", "--short", "HEAD")
+        if commit and git("status", "--porcelain", "--untracked-files=no"):
+            commit += "+dirty"
+    argv = list(sys.argv) or [""]
+    prog = Path(argv[0]).resolve() if argv[0] else None
+    if prog is not None and prog.is_relative_to(root / "prml2_edge"):
+        head = ["prml2"]  # python -m prml2_edge.cli.main
+    elif prog is not None and prog.suffix == ".py":
+        head = ["python", str(prog.relative_to(root)) if prog.is_relative_to(root) else argv[0]]
+    else:
+        head = [Path(argv[0]).name or "python"]
+    return {"commit": commit, "command": shlex.join(head + argv[1:])}
+
+
 def machine_info(with_torch: bool = False) -> dict:
-    """CPU model, cores, SIMD flags, memory, OS, Python and library versions, load average (plain data).
+    """CPU model, cores, SIMD flags, memory, OS, Python and library versions, load average (plain data), and the
+    commit and command that ran (:func:`provenance`).
 
     ``with_torch`` also reports torch's version and threads (training-side scripts only: the
     edge bench must not import torch).
@@ -95,6 +132,7 @@ def machine_info(with_torch: bool = False) -> dict:
         "onnxruntime_providers": ort.get_available_providers(),
         "blas": blas_info(),
         "load_average": load_average(),
+        **provenance(),
     }
     if with_torch:
         import torch
