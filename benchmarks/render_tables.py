@@ -99,6 +99,23 @@ def calibration_replay(doc: dict) -> list[str]:
     return out
 
 
+def calibration_replay_highway(doc: dict) -> list[str]:
+    truth = doc["args"]["yaw_offset_dps"]
+    out = [f"| car | genuine fixes refused | refused without calibration | yaw offset at outage °/s (truth "
+           f"{truth:+.3f}) | drift % | drift % without calibration | 2σ / 3σ % |", "|---|---|---|---|---|---|---|"]
+    for r in doc["cars"]:
+        on, off = r["calibrated"], r["reference"]
+        std = (on.get("calibration") or {}).get("yaw_rate_offset_std_dps", float("nan"))
+        out.append(f"| {r['car']} | {on['refused']} of {r['fixes']} | {off['refused']} | "
+                   f"{r['yaw_offset_estimate_dps']:+.3f} ± {std:.3f} | {on['truth']['drift_pct']:.2f} | "
+                   f"{off['truth']['drift_pct']:.2f} | {on['truth'].get('coverage_2sigma_pct', 0):.0f} / "
+                   f"{on['truth'].get('coverage_3sigma_pct', 0):.0f} |")
+    s = doc["summary"]
+    out.append(f"| **mean** | **{s['refused_total']}** | | | **{s['mean_drift_pct']:.2f}** | "
+               f"**{s['mean_drift_pct_without_calibration']:.2f}** | |")
+    return out
+
+
 def sim_realism(doc: dict) -> list[str]:
     cars = list(doc["rows"][0]["cars"])
     out = ["| variant | split | " + " | ".join(f"`{c}`" for c in cars) + " | fleet |",
@@ -132,6 +149,7 @@ RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., list[str]]]] = {
     "soak": (("soak",), soak),
     "fuzz": (("fuzz",), fuzz),
     "calibration_replay": (("calibration_replay",), calibration_replay),
+    "calibration_replay_highway": (("calibration_replay_highway",), calibration_replay_highway),
     "sim_realism": (("sim_realism",), sim_realism),
     "sensor_profile": (("sensor_profile",), sensor_profile),
 }
