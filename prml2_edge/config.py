@@ -41,7 +41,7 @@ class ModelConfig:
     providers: tuple[str, ...] = ("tensorrt", "cuda", "cpu")
     threads: int = 1  # ONNX Runtime intra-op threads
     # ONNX Runtime's worker threads spin (busy-wait) between parallel sections instead of sleeping: with
-    # threads >= 2 it cut the paper-size model's e2e p99 from 39 to 30 ms here (benchmarks/README.md) at
+    # threads >= 2 it cut the paper-size model's e2e p99 from 39 to 30 ms here (docs/benchmarks.md) at
     # the cost of CPU time the other processes of the box then do not get; off by default
     spinning: bool = False
     trt_fp16: bool = False

@@ -20,7 +20,7 @@ the parts' physical values (each times its ``part_scale``, default 1) before ``s
 the runtime feeds that constant, always valid, in place of the signal; or ``substitute =
 "wheel_deceleration"``: ``idle + per_mps2 * max(0, -a)`` with ``a`` the change of the mean wheel
 speed over the last 0.2 s (defaults 0.85 bar and 10 bar per m/s^2, what the shipped model was
-trained with). README "Bring your own car" says what each costs. Only ``brake_pressure_bar`` may
+trained with). docs/bring-your-own-car.md says what each costs. Only ``brake_pressure_bar`` may
 be absent: the model cannot do without speeds, steering, yaw rate or lateral acceleration.
 
 **GNSS from the project DBC on a vehicle bus:** ``[gnss] dbc = "prml2_onboard.dbc"`` takes the

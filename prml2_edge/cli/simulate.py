@@ -25,7 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="manoeuvre family (default: mixed, or snow when mu <= 0.5)")
     parser.add_argument("--name", default=None, help="drive name (default sim_<family>_s<seed>)")
     parser.add_argument("--vehicle", default="reference",
-                        help="single drive: car of the simulated fleet (default reference; see README 'Benchmark')")
+                        help="single drive: car of the simulated fleet (default reference; see docs/data.md)")
     parser.add_argument("--workers", type=int, default=2, help="worker processes for --recipe (default 2)")
     parser.add_argument("--yaw-offset-dps", type=float, default=None, metavar="DEG_S",
                         help="single drive: this CAN yaw-rate offset [deg/s] instead of a random one")

@@ -1,6 +1,6 @@
 """Sign conventions of a ReV-StED-schema file, checked from physics (NumPy only).
 
-The loader flips the documented conventions into the schema's frame (README "Deviations":
+The loader flips the documented conventions into the schema's frame (docs/deviations.md:
 ADMA ground truth is y right, z down, so ``rate_hor_z`` is clockwise positive and
 ``INS_velCOG_hor_y``/``acc_hor_y`` right positive; ``LatAcc_obd`` is right positive;
 ``ins_yaw`` clockwise from north). A file from another source with other conventions would

@@ -145,7 +145,7 @@ def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: 
     return tasks
 
 
-# Deployment protocol (method.md deviation, README): fixes as a consumer receiver gives them.
+# Deployment protocol (method.md deviation, docs/deviations.md): fixes as a consumer receiver gives them.
 DEPLOYMENT_PREROLL_S = 30.0  # GNSS-aided driving before each outage window [s]
 GNSS_RATE_HZ = 10.0
 GNSS_POS_STD_M = 1.5

@@ -1,6 +1,6 @@
 """Streaming localisation: one code path for the live runtime and offline evaluation.
 
-The pipeline the README draws, one stage a module:
+The pipeline docs/design.md draws, one stage a module:
 :mod:`~prml2_edge.runtime.estimator` (window -> model -> physics guard -> z) feeds
 :mod:`~prml2_edge.runtime.filter` (EKF with calibration states, raw cues, standstill, GNSS);
 :class:`StreamingLocalizer` runs the two per 50 Hz row and reports the pose status.
@@ -68,7 +68,7 @@ class LocalizerConfig:
     # online (the 10th percentile of the steps between successive distinct readings; until measured,
     # yaw_cue_resolution_radps). Quantisation error is not white: it stays while the yaw rate stays in one
     # step, so a coarse sensor (ReV-StED: 1.28 deg/s) is down-weighted far more than step / sqrt(12).
-    # The gain was chosen on the validation split (README, "Self-calibration").
+    # The gain was chosen on the validation split (docs/calibration.md).
     yaw_cue_std_radps: float = 0.1 * schema.DEG_TO_RAD
     yaw_cue_quant_gain: float = 12.0
     yaw_cue_resolution_radps: float = 1.28 * schema.DEG_TO_RAD

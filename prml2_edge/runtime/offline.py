@@ -20,7 +20,7 @@ With ``batch=1`` (the default) every window is its own ``session.run`` call on t
 the model outputs, and with them the trajectory, are bitwise those of the streaming path (the test
 suite checks it on a log with faults). ``batch > 1`` needs a graph with a free batch dimension and
 changes outputs in the last float32 bits (onnxruntime blocks a batched GEMM differently); on this
-CPU it is not faster for the edge model (``benchmarks/README.md``); on a GPU it would be.
+CPU it is not faster for the edge model (``docs/benchmarks.md``); on a GPU it would be.
 Decoding in bulk (frames grouped by ID, bits extracted with NumPy) was tried and measured no faster
 than cantools frame by frame: the time of stage 1 is in the per-frame checks and the assembler.
 """

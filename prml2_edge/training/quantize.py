@@ -29,7 +29,7 @@ from prml2_edge.model_meta import METADATA_KEY
 
 # Module-path parts of PRML2 node names (torch exporter names) kept in fp32 by :func:`quantize_prml2` and
 # ``prml2 export --int8``: the input projection (9 -> d), the output head (d -> 10) and the linear skip
-# (9 -> 5). Together under 1 % of the FLOPs, but rounding them costs up to 37 % z RMSE (benchmarks/README.md).
+# (9 -> 5). Together under 1 % of the FLOPs, but rounding them costs up to 37 % z RMSE (docs/benchmarks.md).
 PRML2_KEEP_FP32 = ("/input_proj/", "/head/", "/skip/")
 
 
