@@ -97,4 +97,15 @@ def run(args: argparse.Namespace) -> int:
     if gnss is not None:
         summary["gnss_input"] = gnss.summary()
     extra_lines = [f"bus receive errors: {source.errors} (last: {source.last_error})"] if source.errors else []
-    return report_run(pipeline, summary, args.summary_json, extra_lines)
+    # Like a replay, a live run in which the model never ran failed: its poses came from the filter alone.
+    return report_run(pipeline, summary, args.summary_json, extra_lines,
+                      error=live_failure(pipeline, cfg.can, time.monotonic() - t_start))
+
+
+def live_failure(pipeline, can_cfg, wall_s: float) -> str | None:
+    """Why a live run could not do its job (one line), or None: no frame on the bus, or the model never ran."""
+    if pipeline.stats.received == 0:
+        return (f"no CAN frame arrived on {can_cfg.interface} {can_cfg.channel} in {wall_s:.1f} s, so the model "
+                "never ran: check that the interface is up (ip -details link show), the channel name and that the "
+                "car's bus is connected (ignition on)")
+    return pipeline.model_never_ran("the run")
