@@ -41,7 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import can
 
-    from prml2_edge.cli.runtime_app import build_pipeline, config_from_args, report_run
+    from prml2_edge.cli.runtime_app import build_pipeline, config_from_args, recorded_gnss, report_run
     from prml2_edge.errors import ConfigError, DataError
     from prml2_edge.progress import Progress
     from prml2_edge.runtime.pipeline import run_source
@@ -74,17 +74,11 @@ def run(args: argparse.Namespace) -> int:
         truth = load_drive(args.truth, require_ground_truth=True)
         memory = MemorySink()
         extra.append(memory)
-    feed = None
-    if getattr(args, "gnss", None):
-        from prml2_edge.runtime.gnss_input import FixFeed, LocalFrame, check_overlap, load_fixes
-
-        fixes = load_fixes(args.gnss, LocalFrame.parse(args.gnss_origin), args.gnss_time_offset)
-        check_overlap(fixes, t_first, t_last, args.gnss)
-        feed = FixFeed(fixes, str(args.gnss))
+    feed = recorded_gnss(cfg, t_first, t_last)  # --gnss FILE or [gnss] file
     pipeline = build_pipeline(cfg, extra, external_gnss=feed is not None)
     if feed is not None:
         pipeline.add_gnss_source(feed)
-        print(f"GNSS: {len(feed.fixes)} fixes from {args.gnss}, merged by time")
+        print(f"GNSS: {len(feed.fixes)} fixes from {feed.describe}, merged by time")
     print(f"replaying {args.log}: {n_frames} frames, {t_last - t_first:.1f} s"
           f"{' in real time' if args.realtime else ''}{' (offline schedule)' if args.batch else ''}; "
           f"{pipeline.model.describe()}"

@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
     import threading
     import time
 
-    from prml2_edge.cli.runtime_app import build_pipeline, config_from_args, report_run
+    from prml2_edge.cli.runtime_app import build_pipeline, config_from_args, open_gnss_receiver, report_run
     from prml2_edge.runtime.pipeline import run_source
     from prml2_edge.runtime.sinks import CanSink
     from prml2_edge.runtime.source import BusSource, open_bus
@@ -40,11 +40,7 @@ def run(args: argparse.Namespace) -> int:
 
     log = logging.getLogger("prml2.run")
     cfg = config_from_args(args)
-    gnss = None
-    if getattr(args, "gnss", None):
-        from prml2_edge.runtime.gnss_input import LocalFrame, open_live
-
-        gnss = open_live(args.gnss, LocalFrame.parse(args.gnss_origin))
+    gnss = open_gnss_receiver(cfg, args)
     pipeline = build_pipeline(cfg, external_gnss=gnss is not None)
     if gnss is not None:
         pipeline.add_gnss_source(gnss.start())
