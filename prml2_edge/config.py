@@ -75,6 +75,16 @@ class CalibrationConfig:
 
 
 @dataclass(frozen=True)
+class GnssConfig:
+    """Fixes from a receiver or a file instead of the CAN bus (runtime/gnss_input.py); flags override these."""
+
+    receiver: str | None = None  # prml2 run (--gnss): gpsd://HOST[:PORT] or a serial NMEA receiver
+    file: str | None = None  # prml2 replay (--gnss): an NMEA log, a CSV (t_s,x_m,y_m[,heading_deg]) or a TUM file
+    origin: tuple[float, ...] | None = None  # [LAT, LON] of the local east/north frame (--gnss-origin); None: 1st fix
+    time_offset_s: float = 0.0  # prml2 replay (--gnss-time-offset): seconds added to the file's fix times
+
+
+@dataclass(frozen=True)
 class RuntimeConfig:
     can: CanConfig = field(default_factory=CanConfig)
     signals: SignalsConfig = field(default_factory=SignalsConfig)
@@ -82,6 +92,7 @@ class RuntimeConfig:
     initial_pose: InitialPoseConfig = field(default_factory=InitialPoseConfig)
     sinks: SinksConfig = field(default_factory=SinksConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    gnss: GnssConfig = field(default_factory=GnssConfig)
 
 
 _INITIAL_POSE_SOURCES = ("gnss", "config", "file")
@@ -158,6 +169,10 @@ def validate(cfg: RuntimeConfig) -> RuntimeConfig:
                           f"got {cfg.initial_pose.source!r}")
     if cfg.initial_pose.source == "file" and not cfg.initial_pose.file:
         raise ConfigError("[initial_pose] source = 'file' needs file = PATH")
+    origin = cfg.gnss.origin
+    if origin is not None and (len(origin) != 2 or not (-90 <= origin[0] <= 90 and -180 <= origin[1] <= 180)):
+        raise ConfigError(f"[gnss] origin must be [LAT, LON] in degrees (latitude within +-90, longitude within "
+                          f"+-180), e.g. [48.1351, 11.5820], got {list(origin)}")
     return cfg
 
 

@@ -37,6 +37,12 @@ def test_shipped_example_lists_every_option(repo_root):
     ({"signals": {"mu": -1}}, r"mu must be > 0"),
     ({"initial_pose": {"source": "magic"}}, r"source must be one of"),
     ({"sinks": "x"}, r"\[sinks\]: expected a table"),
+    ({"gnss": {"reciever": "gpsd://localhost"}},
+     r"^cfg.toml: gnss: unknown key 'reciever' \(known: file, origin, receiver, time_offset_s\)$"),
+    ({"gnss": {"origin": [48.1]}}, r"\[gnss\] origin must be \[LAT, LON\]"),
+    ({"gnss": {"origin": [148.1, 11.5]}}, r"latitude within \+-90"),
+    ({"gnss": {"origin": "48.1,11.5"}}, r"\[gnss\] origin: expected a list of float"),
+    ({"gnss": {"time_offset_s": "1 h"}}, r"\[gnss\] time_offset_s: expected float"),
 ])
 def test_bad_values_are_named(doc, message):
     with pytest.raises(ConfigError, match=message):
@@ -86,3 +92,32 @@ def test_spinning_reaches_the_onnxruntime_session(tmp_path):
     args = parser.parse_args(["--model", str(model), "--spinning", "--initial-pose", "0,0,0"])
     assert config_from_args(args).model.spinning is True
     assert config_from_args(parser.parse_args([])).model.spinning is False
+
+
+def test_gnss_section_and_the_flags_over_it(tmp_path):
+    """[gnss] gives what --gnss, --gnss-origin and --gnss-time-offset give; a flag wins over the file, and each
+    command reads its own key (run: receiver, replay: file), so one config serves both."""
+    import argparse
+
+    from prml2_edge.cli.runtime_app import config_from_args
+    from prml2_edge.cli.runtime_args import add_gnss_arguments, add_pipeline_arguments
+
+    p = tmp_path / "r.toml"
+    p.write_text('[gnss]\nreceiver = "gpsd://box:2947"\nfile = "drive.nmea"\norigin = [48, 11.5]\n'
+                 'time_offset_s = 3\n')
+
+    def parsed(live: bool, *argv: str):
+        parser = argparse.ArgumentParser()
+        add_pipeline_arguments(parser)
+        add_gnss_arguments(parser, live=live)
+        return config_from_args(parser.parse_args(["--config", str(p), *argv])).gnss
+
+    g = parsed(True)
+    assert (g.receiver, g.file, g.origin, g.time_offset_s) == ("gpsd://box:2947", "drive.nmea", (48.0, 11.5), 3.0)
+    g = parsed(True, "--gnss", "/dev/ttyACM0", "--gnss-origin", "47.5,9.25")
+    assert (g.receiver, g.file, g.origin) == ("/dev/ttyACM0", "drive.nmea", (47.5, 9.25))
+    g = parsed(False, "--gnss", "other.csv", "--gnss-time-offset", "-1.5")
+    assert (g.receiver, g.file, g.origin, g.time_offset_s) == ("gpsd://box:2947", "other.csv", (48.0, 11.5), -1.5)
+    assert RuntimeConfig().gnss.receiver is None and RuntimeConfig().gnss.time_offset_s == 0.0
+    with pytest.raises(ConfigError, match="--gnss-origin must be LAT,LON"):
+        parsed(True, "--gnss-origin", "48.1")

@@ -15,7 +15,24 @@ plus every nibble of the data, the last byte's low nibble (the checksum itself) 
 the checksum is ``(8 - sum) & 0xF`` (``+ 3`` more for a 29-bit ID) in the last byte's low
 nibble.
 
-Each takes ``(frame_id, data)`` and returns the value the checksum signal must hold.
+``hyundai_wheel_speed``: Hyundai/Kia WHL_SPD11 (0x386, 50 Hz wheel speeds; opendbc and the panda
+safety code check it): the number of 1 bits in the frame, the top two bits of bytes 1, 3, 5 and 7
+left out (the halves of the alive counter and of the checksum), XOR 9, low 4 bits. The checksum
+is split like the counter: ``WHL_SPD_Checksum_LSB`` (byte 5) and ``WHL_SPD_Checksum_MSB`` (byte 7),
+named in the map as a list (see :mod:`prml2_edge.can.fields`). Older models send no counter or
+checksum there (openpilot's "legacy" Hyundai safety): leave ``[messages.WHL_SPD11]`` out for them.
+
+``hyundai_nibble``: the Hyundai/Kia 4-bit nibble sum (EMS16 0x260 ``Checksum``, SCC12 0x421
+``CR_VSM_ChkSum``): ``(16 - (sum of every 4-bit nibble of the payload) mod 16) mod 16`` with the
+checksum's own nibble cleared. Not every Hyundai checksum is this one: SAS11.CheckSum and
+ESP12.ESP12_Checksum follow a rule nobody has published (opendbc checks neither), so the shipped map
+checks only their alive counters; TCS13 (0x394) leaves its byte 7 out of the sum and is not this
+function either.
+
+Each takes ``(frame_id, data)``, ``data`` being the payload with the checksum's own bits cleared
+(the decoder clears them, the encoder computes before it sets them; the functions that skip the
+checksum's byte or nibble anyway do not depend on it), and returns the value the checksum signal
+must hold.
 """
 
 from __future__ import annotations
@@ -76,8 +93,22 @@ def honda_checksum(frame_id: int, data: bytes) -> int:
     return s & 0xF
 
 
+def hyundai_wheel_speed_checksum(frame_id: int, data: bytes) -> int:
+    """Hyundai/Kia WHL_SPD11 checksum (4 bits): the frame's 1 bits but the top two of each odd byte, XOR 9."""
+    ones = sum((b & 0x3F if i % 2 else b).bit_count() for i, b in enumerate(data))
+    return (ones ^ 9) & 0xF
+
+
+def hyundai_nibble_checksum(frame_id: int, data: bytes) -> int:
+    """Hyundai/Kia nibble-sum checksum (4 bits) of a payload whose checksum nibble is cleared."""
+    s = sum((b & 0xF) + (b >> 4) for b in data)
+    return (16 - s % 16) % 16
+
+
 CHECKSUMS: dict[str, Callable[[int, bytes], int]] = {"prml2_crc8": prml2_crc8, "toyota": toyota_checksum,
-                                                      "honda": honda_checksum}
+                                                      "honda": honda_checksum,
+                                                      "hyundai_wheel_speed": hyundai_wheel_speed_checksum,
+                                                      "hyundai_nibble": hyundai_nibble_checksum}
 
 
 def checksum_function(name: str) -> Callable[[int, bytes], int]:

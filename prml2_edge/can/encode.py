@@ -22,6 +22,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.can.checksum import checksum_function
+from prml2_edge.can.fields import SplitField
 from prml2_edge.can.signal_map import SignalSpec, load_map_and_dbc, shipped_map_path
 from prml2_edge.errors import ConfigError, require_extra
 from prml2_edge.progress import Progress
@@ -35,8 +36,8 @@ class _MessagePlan:
     message: object  # cantools Message
     rate_hz: float
     specs: list[SignalSpec]
-    counter: str | None
-    checksum: str | None
+    counter: SplitField | None
+    checksum: SplitField | None
     checksum_fn: object
     checksum_in_byte0: bool
     defaults: dict[str, float]
@@ -207,16 +208,16 @@ def _plan_message(smap, db, msg_name: str) -> _MessagePlan:
     specs = [s for s in smap.present if s.message == msg_name]
     message = db.get_message_by_name(msg_name)
     checks = smap.messages.get(msg_name)
-    counter = checks.counter if checks else None
-    checksum = checks.checksum if checks else None
+    counter = SplitField.of(message, checks.counter) if checks else None
+    checksum = SplitField.of(message, checks.checksum) if checks else None
     fn = checksum_function(checks.checksum_algorithm) if checks and checks.checksum_algorithm else None
     in_byte0 = False
-    if checksum is not None:
-        cs = message.get_signal_by_name(checksum)
+    if checksum is not None and len(checksum.parts) == 1:
+        cs = message.get_signal_by_name(checksum.names[0])
         in_byte0 = cs.start == 0 and cs.length == 8 and cs.byte_order == "little_endian"
     fed = {p for s in specs for p, _ in s.summed_parts} | {s.valid for s in specs if s.valid} | \
         {s.sign for s in specs if s.sign}
-    fed |= {x for x in (counter, checksum) if x}
+    fed |= set(checks.signal_names) if checks else set()
     defaults = {sig.name: _default_value(sig) for sig in message.signals if sig.name not in fed}
     return _MessagePlan(message, max(s.rate_hz for s in specs), specs, counter, checksum, fn, in_byte0, defaults)
 
@@ -276,17 +277,16 @@ def _encode_onboard(plan: _MessagePlan, row: list[float], count: int, clipped: d
         if spec.valid:
             values[spec.valid] = spec.valid_value if finite else 1 - spec.valid_value
     if plan.counter:
-        bits = msg.get_signal_by_name(plan.counter).length
-        values[plan.counter] = count % (1 << bits)
+        plan.counter.write(values, count % (1 << plan.counter.bits))
     if plan.checksum:
-        values[plan.checksum] = 0
+        plan.checksum.write(values, 0)
     data = bytearray(msg.encode(values, scaling=True, strict=False))
     if plan.checksum and plan.checksum_fn is not None:
         crc = plan.checksum_fn(msg.frame_id, bytes(data))
         if plan.checksum_in_byte0:
             data[0] = crc
         else:
-            values[plan.checksum] = crc
+            plan.checksum.write(values, crc)
             data = bytearray(msg.encode(values, scaling=True, strict=False))
     return data
 

@@ -6,7 +6,8 @@ Format (see ``dbc/maps/prml2_onboard.toml``)::
                                short_frames (accept payloads shorter than the DBC length)
     [signals.<canonical name>] message, signal, part_scale, scale, offset, rate_hz, valid, valid_value, sign
                                or: absent = true, substitute (a signal this car does not have)
-    [messages.<message>]       counter, checksum, checksum_algorithm (integrity checks)
+    [messages.<message>]       counter, checksum, checksum_algorithm (integrity checks; a counter or checksum
+                               split over several DBC signals is a list, low bits first)
     [gnss]                     message, x, y, heading, valid, dbc (optional GNSS fix input)
 
 ``value_SI = physical * scale + offset``, negated when the ``sign`` bit is set (VW style
@@ -91,12 +92,28 @@ class SignalSpec:
 
 @dataclass(frozen=True)
 class MessageChecks:
-    """Integrity checks of one message: counter and checksum signal names."""
+    """Integrity checks of one message: counter and checksum signal names (a tuple: one field split over several
+    signals, low bits first, :class:`prml2_edge.can.fields.SplitField`)."""
 
     message: str
-    counter: str | None = None
-    checksum: str | None = None
+    counter: str | tuple[str, ...] | None = None
+    checksum: str | tuple[str, ...] | None = None
     checksum_algorithm: str | None = None
+
+    @property
+    def signal_names(self) -> tuple[str, ...]:
+        """Every DBC signal the counter and the checksum occupy."""
+        return tuple(n for f in (self.counter, self.checksum) if f is not None
+                     for n in ((f,) if isinstance(f, str) else f))
+
+
+def _check_field(where: str, key: str, value: object) -> object:
+    """A ``[messages.*]`` value: a string, or for ``counter``/``checksum`` a non-empty list of signal names."""
+    if key in ("counter", "checksum") and isinstance(value, list):
+        if not value or not all(isinstance(v, str) for v in value):
+            raise ConfigError(f"{where}: key {key!r} must be a DBC signal name or a list of them (low bits first)")
+        return tuple(value)
+    return _typed(where, key, value, str)
 
 
 @dataclass(frozen=True)
@@ -284,8 +301,7 @@ def _message_checks(path: Path, raw_messages: dict) -> dict[str, MessageChecks]:
         where = f"{path} [messages.{msg_name}]"
         t = _table(where, t)
         _check_keys(where, t, _MESSAGE_KEYS)
-        for key in t:
-            _typed(where, key, t[key], str)
+        t = {key: _check_field(where, key, value) for key, value in t.items()}
         algo = t.get("checksum_algorithm")
         if algo is not None and algo not in CHECKSUMS:
             raise ConfigError(f"{where}: unknown checksum_algorithm {algo!r}; known: {', '.join(sorted(CHECKSUMS))}")
@@ -371,8 +387,8 @@ def check_against_dbc(signal_map: SignalMap, db: cantools.database.can.Database,
         if not has(checks.message):
             problems.append(f"[messages.{checks.message}]: message not in DBC")
             continue
-        for sig in (checks.counter, checks.checksum):
-            if sig is not None and not has(checks.message, sig):
+        for sig in checks.signal_names:
+            if not has(checks.message, sig):
                 problems.append(f"[messages.{checks.message}]: signal {sig!r} not in DBC")
     if signal_map.gnss is not None:
         g = signal_map.gnss

@@ -39,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from prml2_edge.cli.runtime_app import build_pipeline, config_from_args, report_run
+    from prml2_edge.cli.runtime_app import build_pipeline, config_from_args, recorded_gnss, report_run
     from prml2_edge.errors import DataError
     from prml2_edge.runtime.source import scan_log
 
@@ -51,11 +51,11 @@ def run(args: argparse.Namespace) -> int:
     if n_frames == 0:
         raise DataError(problem or f"{args.log}: CAN log holds no frames")
     extra, memory, truth = _extra_sinks(args)
-    feed = _gnss_feed(args, t_first, t_last)
+    feed = recorded_gnss(cfg, t_first, t_last)  # --gnss FILE or [gnss] file
     pipeline = build_pipeline(cfg, extra, external_gnss=feed is not None)
     if feed is not None:
         pipeline.add_gnss_source(feed)
-        print(f"GNSS: {len(feed.fixes)} fixes from {args.gnss}, merged by time")
+        print(f"GNSS: {len(feed.fixes)} fixes from {feed.describe}, merged by time")
     print(f"replaying {args.log}: {n_frames} frames, {t_last - t_first:.1f} s"
           f"{' in real time' if args.realtime else ''}{' (offline schedule)' if args.batch else ''}; "
           f"{pipeline.model.describe()}"
@@ -111,17 +111,6 @@ def _extra_sinks(args: argparse.Namespace) -> tuple[list, object, object]:
         memory = MemorySink()
         extra.append(memory)
     return extra, memory, truth
-
-
-def _gnss_feed(args: argparse.Namespace, t_first: float, t_last: float):
-    """``--gnss FILE``'s fixes as a feed merged by time, checked to overlap the log; None without ``--gnss``."""
-    if not getattr(args, "gnss", None):
-        return None
-    from prml2_edge.runtime.gnss_input import FixFeed, LocalFrame, check_overlap, load_fixes
-
-    fixes = load_fixes(args.gnss, LocalFrame.parse(args.gnss_origin), args.gnss_time_offset)
-    check_overlap(fixes, t_first, t_last, args.gnss)
-    return FixFeed(fixes, str(args.gnss))
 
 
 def _replay(pipeline, args: argparse.Namespace, n_frames: int):

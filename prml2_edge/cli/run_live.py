@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
     import threading
     import time
 
-    from prml2_edge.cli.runtime_app import build_pipeline, config_from_args, report_run
+    from prml2_edge.cli.runtime_app import build_pipeline, config_from_args, open_gnss_receiver, report_run
     from prml2_edge.runtime.pipeline import run_source
     from prml2_edge.runtime.sinks import CanSink
     from prml2_edge.runtime.source import BusSource, open_bus
@@ -40,11 +40,7 @@ def run(args: argparse.Namespace) -> int:
 
     log = logging.getLogger("prml2.run")
     cfg = config_from_args(args)
-    gnss = None
-    if getattr(args, "gnss", None):
-        from prml2_edge.runtime.gnss_input import LocalFrame, open_live
-
-        gnss = open_live(args.gnss, LocalFrame.parse(args.gnss_origin))
+    gnss = open_gnss_receiver(cfg, args)
     pipeline = build_pipeline(cfg, external_gnss=gnss is not None)
     if gnss is not None:
         pipeline.add_gnss_source(gnss.start())
@@ -97,4 +93,15 @@ def run(args: argparse.Namespace) -> int:
     if gnss is not None:
         summary["gnss_input"] = gnss.summary()
     extra_lines = [f"bus receive errors: {source.errors} (last: {source.last_error})"] if source.errors else []
-    return report_run(pipeline, summary, args.summary_json, extra_lines)
+    # Like a replay, a live run in which the model never ran failed: its poses came from the filter alone.
+    return report_run(pipeline, summary, args.summary_json, extra_lines,
+                      error=live_failure(pipeline, cfg.can, time.monotonic() - t_start))
+
+
+def live_failure(pipeline, can_cfg, wall_s: float) -> str | None:
+    """Why a live run could not do its job (one line), or None: no frame on the bus, or the model never ran."""
+    if pipeline.stats.received == 0:
+        return (f"no CAN frame arrived on {can_cfg.interface} {can_cfg.channel} in {wall_s:.1f} s, so the model "
+                "never ran: check that the interface is up (ip -details link show), the channel name and that the "
+                "car's bus is connected (ignition on)")
+    return pipeline.model_never_ran("the run")

@@ -33,6 +33,13 @@ def config_from_args(args: argparse.Namespace) -> RuntimeConfig:
     providers = None
     if getattr(args, "providers", None):
         providers = tuple(p.strip() for p in args.providers.split(",") if p.strip())
+    gnss = {"time_offset_s": getattr(args, "gnss_time_offset", None)}
+    if getattr(args, "gnss", None):
+        gnss[getattr(args, "gnss_key", "receiver")] = args.gnss
+    if getattr(args, "gnss_origin", None):
+        from prml2_edge.runtime.gnss_input import LocalFrame
+
+        gnss["origin"] = LocalFrame.parse(args.gnss_origin).origin
     can_section = {k: getattr(args, k, None) for k in ("interface", "channel", "bitrate")}
     if getattr(args, "fd", False):
         can_section["fd"] = True
@@ -47,7 +54,30 @@ def config_from_args(args: argparse.Namespace) -> RuntimeConfig:
                "status_interval_s": getattr(args, "status_interval", None)},
         calibration={"file": getattr(args, "calibration", None),
                      "enabled": False if getattr(args, "no_calibration", False) else None},
+        gnss=gnss,
     )
+
+
+def open_gnss_receiver(cfg: RuntimeConfig, args: argparse.Namespace):
+    """The live receiver ``--gnss`` or ``[gnss] receiver`` names, opened but not started; None when neither does."""
+    if not cfg.gnss.receiver:
+        return None
+    from prml2_edge.runtime.gnss_input import LocalFrame, open_live
+
+    where = "--gnss" if getattr(args, "gnss", None) else "[gnss] receiver"
+    return open_live(cfg.gnss.receiver, LocalFrame(cfg.gnss.origin), where)
+
+
+def recorded_gnss(cfg: RuntimeConfig, t_first: float, t_last: float):
+    """The fixes of ``--gnss FILE`` or ``[gnss] file`` as a time-ordered feed, refused in one line when they do not
+    overlap the CAN log (``t_first..t_last``); None when no file is named."""
+    if not cfg.gnss.file:
+        return None
+    from prml2_edge.runtime.gnss_input import FixFeed, LocalFrame, check_overlap, load_fixes
+
+    fixes = load_fixes(cfg.gnss.file, LocalFrame(cfg.gnss.origin), cfg.gnss.time_offset_s)
+    check_overlap(fixes, t_first, t_last, cfg.gnss.file)
+    return FixFeed(fixes, cfg.gnss.file)
 
 
 def initial_pose_from_config(cfg: RuntimeConfig) -> InitialPose | None:

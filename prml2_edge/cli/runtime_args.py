@@ -44,7 +44,8 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_gnss_arguments(parser: argparse.ArgumentParser, live: bool) -> None:
-    """``--gnss`` and its options: fixes from a receiver (live) or a recorded file (replay)."""
+    """``--gnss`` and its options: fixes from a receiver (live) or a recorded file (replay); each overrides its
+    ``[gnss]`` key of the config (``receiver`` or ``file``, ``origin``, ``time_offset_s``)."""
     g = parser.add_argument_group("GNSS fixes from a receiver (not the CAN bus)")
     if live:
         g.add_argument("--gnss", metavar="SOURCE",
@@ -55,7 +56,10 @@ def add_gnss_arguments(parser: argparse.ArgumentParser, live: bool) -> None:
                        help="fixes merged with the CAN log by time: an NMEA log (GGA/RMC, UTC times), a CSV "
                             "(t_s,x_m,y_m[,heading_deg]) or a TUM file (local metres; the quaternion's yaw is the "
                             "course)")
-        g.add_argument("--gnss-time-offset", type=float, default=0.0, metavar="S",
-                       help="seconds added to the fixes' times when their clock differs from the CAN log's")
+        g.add_argument("--gnss-time-offset", type=float, metavar="S",
+                       help="seconds added to the fixes' times when their clock differs from the CAN log's "
+                            "(default 0)")
     g.add_argument("--gnss-origin", metavar="LAT,LON",
                    help="origin of the local east/north frame for latitude/longitude (default: the first fix)")
+    # which [gnss] key of the config --gnss overrides: the receiver for a live run, the file for a replay
+    parser.set_defaults(gnss_key="receiver" if live else "file")

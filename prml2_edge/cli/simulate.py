@@ -17,7 +17,8 @@ FAMILIES = ("longitudinal", "lateral", "mixed", "snow", "highway")  # mirrors pr
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="output folder (becomes a dataset: drives/*.csv + manifest.json)")
     parser.add_argument("--recipe", help="write a whole dataset: 'benchmark' (a fleet of 5 cars with their own "
-                        "train/val/test/snow drives and a held-out 6th car; ~3.8 h) or 'small'")
+                        "train/val/test/snow drives and a held-out 6th car; ~3.8 h) or 'small' (10 min, a drive "
+                        "per split: enough for train and evaluate, for quick tries)")
     parser.add_argument("--minutes", type=float, default=5.0, help="duration of a single drive [min] (default 5)")
     parser.add_argument("--mu", type=float, default=1.0, help="friction coefficient (1.0 dry; snow 0.2-0.5)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (same seed, same drive)")

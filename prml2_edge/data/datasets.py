@@ -83,10 +83,21 @@ def _benchmark_recipe() -> dict:
 
 
 def _small_recipe() -> dict:
-    """A few minutes: two dry drives and one snow drive (tests and quick tries)."""
+    """Ten minutes for quick tries: two training drives, a validation drive, a test drive, a snow drive.
+
+    Each dry drive has a split of its own, as in the benchmark: split 70:10:20, a 2.5 min drive would
+    give validation 15 s and test 30 s, no 60 s window, and ``prml2 evaluate`` could neither tune the
+    OSD baseline nor score anything. Here validation holds one 60 s window (1.2 min: the model's 5 s
+    of history, then 60 s), test two (2.2 min; one after the deployment protocol's 30 s pre-roll),
+    snow one.
+    """
     return {"name": "small", "drives": [
-        {"name": "dry_000", "family": "mixed", "mu": 1.0, "seed": 11, "minutes": 2.5, "role": "dry"},
-        {"name": "dry_001", "family": "lateral", "mu": 0.9, "seed": 12, "minutes": 2.5, "role": "dry"},
+        {"name": "dry_000", "family": "mixed", "mu": 1.0, "seed": 11, "minutes": 2.5, "role": "dry", "split": "train"},
+        {"name": "dry_001", "family": "lateral", "mu": 0.9, "seed": 12, "minutes": 2.5, "role": "dry",
+         "split": "train"},
+        {"name": "val_000", "family": "mixed", "mu": 0.95, "seed": 13, "minutes": 1.2, "role": "dry", "split": "val"},
+        {"name": "test_000", "family": "mixed", "mu": 1.0, "seed": 14, "minutes": 2.2, "role": "dry",
+         "split": "test"},
         {"name": "snow_000", "family": "snow", "mu": 0.3, "seed": 21, "minutes": 1.5, "role": "snow"},
     ]}
 
@@ -274,7 +285,7 @@ def generate_dataset(out_dir: str | Path, recipe: str | dict = "benchmark", work
         Target folder (created). Existing drive files of the same names are overwritten.
     recipe : str or dict
         ``"benchmark"`` (a fleet of 5 cars with their own train/val/test/snow drives and a held-out
-        sixth car, 3.8 h), ``"small"`` (a few minutes) or a dict ``{"name": ..., "heldout"?: [cars],
+        sixth car, 3.8 h), ``"small"`` (10 min, a drive per split) or a dict ``{"name": ..., "heldout"?: [cars],
         "drives": [{"family", "mu", "seed", "minutes", "role"?, "name"?, "vehicle"?, "split"?}]}``.
     workers : int
         Worker processes (1 = in this process).

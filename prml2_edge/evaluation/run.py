@@ -8,6 +8,8 @@ from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
+from prml2_edge import schema
+from prml2_edge.errors import DataError
 from prml2_edge.evaluation.metrics import dr_summary, paired_comparison, z_rmse
 from prml2_edge.evaluation.protocol import (
     DEPLOYMENT_PREROLL_S,
@@ -83,7 +85,9 @@ def evaluate(data: str | Path, specs: Sequence[ModelSpec], out_dir: str | Path, 
     out.mkdir(parents=True, exist_ok=True)
     target = _ablation_target(specs, ablation)
     dataset = load_dataset(data)
-    sets = _task_sets(dataset, data, window_s, max_windows, snow, preroll_s)
+    # validation windows tune the OSD baseline's noise and the ablation's constant variance; ONNX models need none
+    need_val = target is not None or any(s.kind == "osd" for s in specs)
+    sets = _task_sets(dataset, data, window_s, max_windows, snow, preroll_s, need_val)
     bar = Progress(_n_runs(specs, target, sets, calibration), desc="evaluate", unit="win", enabled=progress)
 
     def tick(res: WindowResult) -> None:
@@ -129,20 +133,33 @@ def _ablation_target(specs: Sequence[ModelSpec], ablation: str | None) -> ModelS
 
 
 def _task_sets(dataset, data, window_s: float, max_windows: int | None, snow: bool,
-               preroll_s: float) -> dict[str, list[WindowTask]]:
+               preroll_s: float, need_val: bool = True) -> dict[str, list[WindowTask]]:
     """``val``, ``test``, ``snow`` and ``deployment`` (test windows after a GNSS pre-roll) windows."""
-    sets = {"val": split_tasks(dataset, "val", window_s, max_windows=max_windows),
+    sets = {"val": split_tasks(dataset, "val", window_s, max_windows=max_windows) if need_val else [],
             "test": split_tasks(dataset, "test", window_s, max_windows=max_windows)}
-    if not sets["val"]:
-        raise ValueError(f"{data}: no {window_s:g} s validation windows to tune the noise on")
+    if need_val and not sets["val"]:
+        raise _no_windows(dataset, data, "val", window_s, "to tune the OSD baseline's noise (and the ablation) on")
     if not sets["test"]:
-        raise ValueError(f"{data}: no {window_s:g} s test windows (need dry drives with ground truth)")
+        raise _no_windows(dataset, data, "test", window_s, "to score the models on")
     sets["snow"] = split_tasks(dataset, "snow", window_s, max_windows=max_windows) if snow else []
     sets["deployment"] = split_tasks(dataset, "test", window_s, max_windows=max_windows, preroll_s=preroll_s) \
         if preroll_s > 0 else []
     # a car no model was trained on (the benchmark's held-out vehicle): zero-shot, or after fine-tuning on its own
     sets["heldout"] = split_tasks(dataset, "heldout", window_s, max_windows=max_windows) if dataset.heldout else []
     return sets
+
+
+def _no_windows(dataset, data, split: str, window_s: float, purpose: str) -> DataError:
+    """One line: no ``window_s`` window fits in ``split``, how long its segments are, and how to get windows."""
+    seconds = [(b - a) * schema.DT_S for drive, a, b in dataset.segments(split) if drive.has_ground_truth]
+    found = (f"its longest segment with ground truth is {max(seconds):.1f} s" if seconds
+             else "it has no dry drive with ground truth")
+    share = {"val": "10", "test": "20"}[split]
+    return DataError(f"{data}: no {window_s:g} s {split} windows {purpose}: {found}, and a window needs {window_s:g} "
+                     f"s after the model's {schema.WINDOW_LEN * schema.DT_S:g} s of history; give drives a split of "
+                     f"their own (\"split\": \"{split}\" in the recipe, as --recipe small and benchmark do) or "
+                     f"record longer ones (a drive without a split gives {share} % to {split}), or score shorter "
+                     "windows with --window-s")
 
 
 def _n_runs(specs: Sequence[ModelSpec], target: ModelSpec | None, sets: dict, calibration: str) -> int:

@@ -32,6 +32,7 @@ import cantools
 
 from prml2_edge import schema
 from prml2_edge.can.checksum import checksum_function
+from prml2_edge.can.fields import SplitField
 from prml2_edge.can.signal_map import SignalMap
 from prml2_edge.runtime.rows import DecodedFrame, GnssFix
 from prml2_edge.runtime.status import FrameStatus
@@ -110,10 +111,11 @@ class _MessagePlan:
     length: int
     message: cantools.database.can.Message
     signals: list[_SignalPlan]
-    counter: str | None = None
+    counter: SplitField | None = None
     counter_modulus: int = 16
-    checksum: str | None = None
+    checksum: SplitField | None = None
     checksum_fn: object = None
+    checksum_keep: bytes = b""  # the payload bits outside the checksum (the function sees the checksum cleared)
     gnss: object = None  # GnssSpec when this message carries the GNSS fix
     last_counter: int | None = None
     min_length: int | None = None  # shortest payload accepted (maps with short_frames): holds every mapped bit
@@ -163,11 +165,12 @@ class FrameDecoder:
             checks = signal_map.messages.get(name)
             if checks is not None:
                 if checks.counter is not None:
-                    plan.counter = checks.counter
-                    plan.counter_modulus = 1 << msg.get_signal_by_name(checks.counter).length
+                    plan.counter = SplitField.of(msg, checks.counter)
+                    plan.counter_modulus = 1 << plan.counter.bits
                 if checks.checksum is not None:
-                    plan.checksum = checks.checksum
+                    plan.checksum = SplitField.of(msg, checks.checksum)
                     plan.checksum_fn = checksum_function(checks.checksum_algorithm)
+                    plan.checksum_keep = bytes(~b & 0xFF for b in plan.checksum.mask(msg))
             self.plans[msg.frame_id] = plan
         return plan
 
@@ -192,10 +195,11 @@ class FrameDecoder:
             return DecodedFrame(FrameStatus.REJECTED_DECODE, t_s, plan.name)
         if plan.checksum is not None:
             try:
-                expected = plan.checksum_fn(plan.frame_id, bytes(data))  # type: ignore[operator]
+                cleared = bytes(b & k for b, k in zip(data, plan.checksum_keep, strict=False))  # short_frames: shorter
+                expected = plan.checksum_fn(plan.frame_id, cleared)  # type: ignore[operator]
             except Exception:
                 return DecodedFrame(FrameStatus.REJECTED_CHECKSUM, t_s, plan.name)
-            if int(decoded[plan.checksum]) != expected:
+            if plan.checksum.read(decoded) != expected:
                 return DecodedFrame(FrameStatus.REJECTED_CHECKSUM, t_s, plan.name)
         gap = False
         mon = plan.injection
@@ -203,7 +207,7 @@ class FrameDecoder:
         if mon is not None:
             mon.rate(t_s, bytes(data))
         if plan.counter is not None:
-            status, gap = self._counter(plan, int(decoded[plan.counter]), t_s)
+            status, gap = self._counter(plan, plan.counter.read(decoded), t_s)
         suspected = False
         if mon is not None:
             self.last_evidence_t = max(self.last_evidence_t, mon.evidence_t)
@@ -322,7 +326,7 @@ def _bytes_needed(plan: _MessagePlan, signal_map: SignalMap) -> int:
     names = set()
     for sp in plan.signals:
         names |= {p for p, _ in (sp.parts or ((sp.signal, 1.0),))} | {x for x in (sp.sign, sp.valid) if x}
-    names |= {x for x in (plan.counter, plan.checksum) if x}
+    names |= {n for f in (plan.counter, plan.checksum) if f is not None for n in f.names}
     g = plan.gnss
     if g is not None:
         names |= {x for x in (g.x, g.y, g.heading, g.valid) if x}

@@ -277,8 +277,8 @@ def check_overlap(fixes: list[GnssFix], t_first: float, t_last: float, where: st
     a, b = fixes[0].t_s, fixes[-1].t_s
     if b < t_first or a > t_last:
         raise DataError(f"{where}: the fixes cover {a:.3f}..{b:.3f} s, the CAN log {t_first:.3f}..{t_last:.3f} s: "
-                        f"they do not overlap; shift them with --gnss-time-offset {t_first - a:+.3f} if the clocks "
-                        "differ")
+                        f"they do not overlap; shift them with --gnss-time-offset {t_first - a:+.3f} ([gnss] "
+                        "time_offset_s in the config) if the clocks differ")
 
 
 # ---- live sources -------------------------------------------------------------------------------
@@ -406,21 +406,22 @@ class SerialNmeaSource(LiveGnss):
                     self._put(fix)
 
 
-def open_live(spec: str, frame: LocalFrame) -> LiveGnss:
-    """``gpsd://HOST[:PORT]``, ``serial:///dev/X[?baud=N]`` or a device path; one-line error otherwise."""
+def open_live(spec: str, frame: LocalFrame, where: str = "--gnss") -> LiveGnss:
+    """``gpsd://HOST[:PORT]``, ``serial:///dev/X[?baud=N]`` or a device path; one-line error otherwise, naming
+    ``where`` the spec came from (the flag or the config key)."""
     if spec.startswith("gpsd://"):
         u = urlparse(spec)
         if not u.hostname:
-            raise ConfigError(f"--gnss {spec!r}: give gpsd://HOST[:PORT] (gpsd listens on port 2947)")
+            raise ConfigError(f"{where} {spec!r}: give gpsd://HOST[:PORT] (gpsd listens on port 2947)")
         return GpsdSource(u.hostname, u.port or 2947, frame)
     if spec.startswith("serial://") or spec.startswith("/dev/"):
         u = urlparse(spec) if spec.startswith("serial://") else None
         device = u.path if u is not None else spec
         baud = int(parse_qs(u.query).get("baud", ["9600"])[0]) if u is not None else 9600
         if not Path(device).exists():
-            raise ConfigError(f"--gnss {spec!r}: serial device {device} not found (is the receiver plugged in?)")
+            raise ConfigError(f"{where} {spec!r}: serial device {device} not found (is the receiver plugged in?)")
         return SerialNmeaSource(device, baud, frame)
-    raise ConfigError(f"--gnss {spec!r}: for a live run give gpsd://HOST[:PORT] or a serial device "
+    raise ConfigError(f"{where} {spec!r}: for a live run give gpsd://HOST[:PORT] or a serial device "
                       "(/dev/ttyACM0, serial:///dev/ttyUSB0?baud=38400)")
 
 

@@ -344,17 +344,22 @@ class Pipeline:
             out[name] = why
         return out
 
-    def model_never_ran(self) -> str | None:
-        """Why the model never ran on this stream (one line), or None when it did."""
+    def model_never_ran(self, stream: str = "the log") -> str | None:
+        """Why the model never ran on this stream (one line), or None when it did; ``stream`` names it
+        in the line ("the log" for a replay, "the run" for a live bus)."""
         if self.localizer.n_model_used:
             return None
+        if self.stats.received and not self.stats.used:
+            return (f"the model never ran: none of the {self.stats.received} frames of {stream} is a message map "
+                    f"{self.signal_map.name} reads; check the map and the DBC against this bus (prml2 doctor)")
         missing = self.missing_signals()
         if missing:
             return "the model never ran: " + "; ".join(missing)
         window_s = getattr(self.localizer.model, "window_len", 250) * schema.DT_S
         data_s = (self.last.t_s - self.first_t_s) if self.last is not None and self.first_t_s is not None else 0.0
         if data_s < window_s:
-            return f"the model never ran: the log covers {data_s:.1f} s, less than the model's {window_s:.0f} s window"
+            return (f"the model never ran: {stream} covers {data_s:.1f} s of CAN data, less than the model's "
+                    f"{window_s:.0f} s window")
         if self.rows and self.invalid_rows.any():
             worst = np.argsort(-self.invalid_rows)[:3]
             parts = [f"{schema.SIGNAL_NAMES[i]} invalid in {100.0 * self.invalid_rows[i] / self.rows:.0f} % of rows"

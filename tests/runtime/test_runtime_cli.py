@@ -102,7 +102,7 @@ def test_run_live_stops_cleanly_on_sigterm(files, capsys, caplog, tmp_path, inte
     def drive_the_bus() -> None:
         while signal.getsignal(signal.SIGTERM) is default and not stop.is_set():  # wait for the handler
             time.sleep(0.01)
-        _send_frames(interface, channel, frames[: 450 * 3], stop)  # 3 s of traffic
+        _send_frames(interface, channel, frames[: 450 * 6], stop)  # 6 s of traffic: the 5 s window fills
         os.kill(os.getpid(), signal.SIGTERM)
 
     feeder = threading.Thread(target=drive_the_bus, daemon=True)
@@ -118,7 +118,7 @@ def test_run_live_stops_cleanly_on_sigterm(files, capsys, caplog, tmp_path, inte
     summary = json.loads((tmp_path / "s.json").read_text())
     assert summary["wall_s"] < 25  # ended by SIGTERM, not by --duration
     fr = summary["frames"]
-    assert fr["balanced"] and fr["used"] > 1000 and summary["rows"] > 100
+    assert fr["balanced"] and fr["used"] > 1000 and summary["rows"] > 100 and summary["model_used_steps"] > 0
     assert signal.getsignal(signal.SIGTERM) is default  # handlers restored
     from mcap.reader import make_reader
 
@@ -128,6 +128,38 @@ def test_run_live_stops_cleanly_on_sigterm(files, capsys, caplog, tmp_path, inte
     assert abs(stats.message_start_time / 1e9 - time.time()) < 120  # live frames: the bus's receive times
     assert f"listening on {interface}" in capsys.readouterr().out
     assert "frames/s" in caplog.text and "e2e p50/p99" in caplog.text  # the periodic status line (logging)
+
+
+def test_run_live_without_frames_fails_in_one_line(files, capsys, tmp_path):
+    """A live run that heard nothing did not do its job: non-zero, one line saying where it listened."""
+    _, model, _ = files
+    channel = f"prml2-silent-{uuid.uuid4().hex}"
+    rc = main(["run", "--interface", "virtual", "--channel", channel, "--model", str(model), "--initial-pose",
+               "0,0,90", "--duration", "0.3", "--status-interval", "0", "--summary-json", str(tmp_path / "s.json")])
+    assert rc == 1
+    err = one_line_error(capsys)
+    assert f"no CAN frame arrived on virtual {channel}" in err and "interface is up" in err
+    assert json.loads((tmp_path / "s.json").read_text())["frames"]["received"] == 0  # the summary is still written
+
+
+def test_run_live_shorter_than_the_window_fails_like_replay(files, capsys):
+    """Frames for 1 s, then the run ends: the model's 5 s window never filled, so the run exits 1 and says so."""
+    root, model, _ = files
+    channel = f"prml2-short-{uuid.uuid4().hex}"
+    frames = list(can.LogReader(str(root / "drive.log")))[:450]  # 1 s of traffic
+    stop = threading.Event()
+    feeder = threading.Thread(target=lambda: (time.sleep(0.2), _send_frames("virtual", channel, frames, stop)),
+                              daemon=True)
+    feeder.start()
+    try:
+        rc = main(["run", "--interface", "virtual", "--channel", channel, "--model", str(model), "--initial-pose",
+                   "0,0,90", "--duration", "1.8", "--status-interval", "0"])
+    finally:
+        stop.set()
+        feeder.join(5)
+    assert rc == 1
+    err = one_line_error(capsys)
+    assert "the model never ran: the run covers" in err and "less than the model's 5 s window" in err
 
 
 def test_demo_with_a_given_model_prints_report_and_writes_a_plot(files, capsys, tmp_path):

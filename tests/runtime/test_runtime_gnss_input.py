@@ -176,14 +176,14 @@ def test_run_with_gpsd_fuses_its_fixes(logs, tmp_path, capsys):
     channel = f"prml2-test-{uuid.uuid4().hex}"
     stop = threading.Event()
 
-    def feed():  # the car's bus: the drive's frames on a python-can virtual channel, at 4x real time
+    def feed():  # the car's bus: the drive's frames on a python-can virtual channel, at 2x real time
         with can.Bus(interface="virtual", channel=channel) as bus:
             msgs = list(can.LogReader(str(root / "no_fixes.log")))
             t0, w0 = msgs[0].timestamp, time.monotonic()
             for m in msgs:
                 if stop.is_set():
                     return
-                delay = w0 + (m.timestamp - t0) / 4.0 - time.monotonic()
+                delay = w0 + (m.timestamp - t0) / 2.0 - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
                 bus.send(can.Message(arbitration_id=m.arbitration_id, data=m.data, is_extended_id=m.is_extended_id))
@@ -191,7 +191,7 @@ def test_run_with_gpsd_fuses_its_fixes(logs, tmp_path, capsys):
     feeder = threading.Thread(target=feed, daemon=True)
     feeder.start()
     try:
-        rc = main(["run", "--interface", "virtual", "--channel", channel, "--model", str(model), "--duration", "5",
+        rc = main(["run", "--interface", "virtual", "--channel", channel, "--model", str(model), "--duration", "6.5",
                    "--gnss", f"gpsd://127.0.0.1:{server.port}", "--gnss-origin", f"{ORIGIN[0]},{ORIGIN[1]}",
                    "--status-interval", "0", "--summary-json", str(tmp_path / "s.json")])
     finally:
@@ -203,7 +203,7 @@ def test_run_with_gpsd_fuses_its_fixes(logs, tmp_path, capsys):
     s = json.loads((tmp_path / "s.json").read_text())
     assert s["gnss_input"]["source"] == f"gpsd://127.0.0.1:{server.port}" and s["gnss_input"]["fixes"] >= 20
     assert s["frames"]["gnss_fixes"] >= 20 and s["steps_by_status"].get("GNSS_AIDED", 0) > 0
-    assert s["last"]["x_m"] is not None
+    assert s["last"]["x_m"] is not None and s["model_used_steps"] > 0  # 6.5 s on the bus: the 5 s window filled
 
 
 def test_serial_nmea_receiver_on_a_pty():
@@ -239,3 +239,22 @@ def test_live_gnss_spec_errors_are_one_line(logs, capsys):
     assert "serial device /dev/does-not-exist not found" in capsys.readouterr().err
     assert main(["run", "--interface", "virtual", "--channel", "x", "--model", str(model), "--gnss", "fixes.nmea"]) == 1
     assert "for a live run give gpsd://HOST[:PORT] or a serial device" in capsys.readouterr().err
+
+
+def test_gnss_from_the_config_file(logs, tmp_path, capsys):
+    """[gnss] file (and origin) of --config replays like --gnss FILE; a receiver the config names that is not
+    there is one line naming the config key."""
+    root, fixes, model = logs
+    write_inputs(tmp_path, fixes)
+    cfg = tmp_path / "runtime.toml"
+    cfg.write_text(f'[gnss]\nfile = "{tmp_path / "fixes.nmea"}"\norigin = [{ORIGIN[0]}, {ORIGIN[1]}]\n'
+                   'receiver = "/dev/prml2-no-such-receiver"\n')
+    assert main(["replay", str(root / "no_fixes.log"), "--model", str(model), "--config", str(cfg),
+                 "--summary-json", str(tmp_path / "s.json")]) == 0
+    summary = json.loads((tmp_path / "s.json").read_text())
+    assert summary["gnss_input"]["merged"] == 100 and summary["gnss_input"]["source"].endswith("fixes.nmea")
+    assert "GNSS: 100 fixes from" in capsys.readouterr().out
+    assert main(["run", "--interface", "virtual", "--channel", "x", "--model", str(model), "--config", str(cfg)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == "prml2: error: [gnss] receiver '/dev/prml2-no-such-receiver': serial device " \
+                  "/dev/prml2-no-such-receiver not found (is the receiver plugged in?)", err

@@ -49,3 +49,14 @@ def test_a_log_shorter_than_the_window_says_so(files, tmp_path, capsys):
     encode_drive_to_log(drive, tmp_path / "short.log", gnss_seconds=1.0)
     assert main(["replay", str(tmp_path / "short.log"), "--model", str(model)]) == 1
     assert "less than the model's 5 s window" in capsys.readouterr().err
+
+
+def test_a_log_of_another_bus_says_no_frame_is_for_the_map(files, tmp_path, capsys):
+    """Frames of IDs the map does not read (the wrong bus, the wrong map): named as such, not as a short log."""
+    root, model = files
+    lines = [f"({100.0 + 0.01 * i:.6f}) vcan0 7F0#0011223344556677" for i in range(600)]  # 6 s of one foreign ID
+    (tmp_path / "other.log").write_text("\n".join(lines) + "\n")
+    assert main(["replay", str(tmp_path / "other.log"), "--model", str(model)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert "none of the 600 frames of the log is a message map prml2_onboard reads" in err, err
