@@ -8,6 +8,17 @@ HELP = "Replay a recorded CAN log through a virtual bus into the runtime."
 NEEDS: tuple[tuple[str, str], ...] = ()
 
 
+# what the replay writes or compares besides the runtime's sinks: (flag, metavar, help)
+_WRITES: tuple[tuple[str, str, str], ...] = (
+    ("--can-out", "PATH", "write PRML2_POSE/PRML2_DYNAMICS/PRML2_POSE_STD frames to this CAN log"),
+    ("--truth", "CSV", "ReV-StED-schema CSV of the same drive with ground truth (e.g. the one prml2 encode read): "
+                       "print the outage error, drift and how often the error lies inside the reported 1/2/3-sigma "
+                       "ellipses"),
+    ("--truth-tum", "PATH", "with --truth: write the ground truth at the replayed steps' times in TUM format, to "
+                            "score --tum with evo (evo_ape tum PATH pose.tum)"),
+)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from prml2_edge.cli.runtime_args import add_pipeline_arguments
 
@@ -23,15 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch-size", type=int, default=1,
                         help="with --batch: windows per ONNX Runtime call (default 1, bitwise the streaming poses; > 1 "
                              "needs a graph with a free batch dimension)")
-    parser.add_argument("--can-out", metavar="PATH",
-                        help="write PRML2_POSE/PRML2_DYNAMICS/PRML2_POSE_STD frames to this CAN log")
-    parser.add_argument("--truth", metavar="CSV",
-                        help="ReV-StED-schema CSV of the same drive with ground truth (e.g. the one prml2 encode "
-                             "read): print the outage error, drift and how often the error lies inside the "
-                             "reported 1/2/3-sigma ellipses")
-    parser.add_argument("--truth-tum", metavar="PATH",
-                        help="with --truth: write the ground truth at the replayed steps' times in TUM format, to "
-                             "score --tum with evo (evo_ape tum PATH pose.tum)")
+    for flag, metavar, what in _WRITES:
+        parser.add_argument(flag, metavar=metavar, help=what)
     add_pipeline_arguments(parser)
     from prml2_edge.cli.runtime_args import add_gnss_arguments
 
