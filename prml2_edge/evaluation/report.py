@@ -128,6 +128,29 @@ def _heldout_lines(metrics: dict) -> list[str]:
                     "a model fine-tuned on the held-out car (`prml2 train --init`) saw only its train drives.", ""]
 
 
+def _vehicle_lines(metrics: dict) -> list[str]:
+    """Per car and split: each model's 60 s RMSE, drift and coverage, and its RMSE over OSD's on the same windows."""
+    per = metrics.get("per_vehicle") or {}
+    if not per:
+        return []
+    lines = ["## Per vehicle: on which car each model helps", "",
+             "Ratio: the model's mean 60 s RMSE over OSD-Baseline's on the same car's windows (below 1: better "
+             "than integrating the raw cues).", "",
+             "| split | car | model | windows | RMSE [m] | drift [%] | / OSD RMSE | 1σ / 2σ / 3σ [%] |",
+             "|---|---|---|---|---|---|---|---|"]
+    for split, cars in per.items():
+        for car, models in cars.items():
+            osd = next((d for n, d in models.items() if _paper_key(n) == "OSD-Baseline" and "+cal" not in n), {})
+            for name, d in models.items():
+                if not d.get("n_windows"):
+                    continue
+                ratio = f"{d['rmse_mean_m'] / osd['rmse_mean_m']:.2f}" if osd.get("rmse_mean_m") else ""
+                lines.append(f"| {split} | {car} | {name} | {d['n_windows']} | "
+                             f"{_pm(d.get('rmse_mean_m'), d.get('rmse_std_m'))} | "
+                             f"{_pm(d.get('drift_mean_pct'), d.get('drift_std_pct'), 2)} | {ratio} | {_cov(d)} |")
+    return lines + [""]
+
+
 def _deployment_lines(metrics: dict) -> list[str]:
     """Table 2c: the deployment protocol (GNSS pre-roll, then the outage) and the uncertainty's coverage."""
     pre = metrics.get("deployment_preroll_s")
@@ -204,6 +227,7 @@ def render_report(metrics: dict) -> str:
     lines += _paired_lines(metrics)
     lines += _deployment_lines(metrics)
     lines += _heldout_lines(metrics)
+    lines += _vehicle_lines(metrics)
     # Table 3
     abl = metrics.get("ablation")
     if abl:

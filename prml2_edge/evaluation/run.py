@@ -104,6 +104,7 @@ def evaluate(data: str | Path, specs: Sequence[ModelSpec], out_dir: str | Path, 
     bar.close()
 
     metrics = _metrics(data, dataset, stride, window_s, tuning, tuned, sets, results, preroll_s)
+    metrics["per_vehicle"] = _per_vehicle(dataset, tuned, sets, results)
     if abl_rows:
         metrics["ablation"] = {"model": target.name, "rows": abl_rows}
     if target is not None and len(tuned) > 1:  # is the reference better than each other model beyond the spread?
@@ -212,6 +213,21 @@ def _metrics(data, dataset, stride: int, window_s: float, tuning: Tuning, tuned:
             metrics["models"][s.name]["deployment"] = {"dead_reckoning_60s": dr_summary(dep),
                                                        **calibration_summary(dep)}
     return metrics
+
+
+def _per_vehicle(dataset, tuned: Sequence[ModelSpec], sets: dict, results: dict) -> dict:
+    """``{split: {car: {model: dr_summary}}}`` for test, snow and heldout: on which car each model helps."""
+    vehicle_of = dict(zip((d["name"] for d in dataset.manifest["drives"]), dataset.vehicles(), strict=True))
+    out: dict = {}
+    for split in ("test", "snow", "heldout"):
+        car_of = {t.key: vehicle_of.get(t.drive, "reference") for t in sets.get(split) or []}
+        by_car: dict = {}
+        for car in sorted(set(car_of.values())):
+            by_car[car] = {s.name: dr_summary([r for r in results[split].get(s.name, [])
+                                               if car_of.get(r.task_key) == car]) for s in tuned}
+        if by_car:
+            out[split] = by_car
+    return out
 
 
 def _paired(target: ModelSpec, tuned: Sequence[ModelSpec], results: dict) -> dict:

@@ -211,3 +211,29 @@ def test_evaluate_without_matplotlib_says_so_in_one_line_and_writes_everything_e
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["figures"] == [] and not list(out.glob("*.png"))
     assert (out / "report.md").is_file() and len(list((out / "tum" / "PRML2").glob("*.txt"))) == 3
+
+
+def test_per_vehicle_breakdown_says_on_which_car_a_model_helps(tmp_path):
+    from prml2_edge.evaluation.run import evaluate
+
+    recipe = {"name": "eval-two-cars", "drives": [
+        {"name": "ref_a", "family": "mixed", "mu": 1.0, "seed": 5, "minutes": 0.8, "role": "dry",
+         "vehicle": "reference"},
+        {"name": "city_a", "family": "lateral", "mu": 0.9, "seed": 6, "minutes": 0.8, "role": "dry",
+         "vehicle": "city_fwd"},
+    ]}
+    data = generate_dataset(tmp_path / "data", recipe, workers=1, progress=False)
+    model = make_kinematic_model(tmp_path / "kinematic.onnx")
+    specs = [ModelSpec("OSD-Baseline", "osd"), ModelSpec("PRML2", "onnx", str(model))]
+    metrics = evaluate(data, specs, tmp_path / "rep", window_s=WINDOW_S, snow=False, tum=False, plots=False,
+                       calibration="off", preroll_s=0.0, progress=False)
+    per = metrics["per_vehicle"]["test"]
+    assert set(per) == {"reference", "city_fwd"}
+    for name in ("OSD-Baseline", "PRML2"):  # the cars' windows add up to the split's
+        total = metrics["models"][name]["test"]["dead_reckoning_60s"]["n_windows"]
+        assert sum(per[car][name]["n_windows"] for car in per) == total == 4
+        assert per["city_fwd"][name]["rmse_mean_m"] != per["reference"][name]["rmse_mean_m"]
+    report = (tmp_path / "rep" / "report.md").read_text()
+    row = next(ln for ln in report.splitlines() if ln.startswith("| test | city_fwd | PRML2 |"))
+    ratio = per["city_fwd"]["PRML2"]["rmse_mean_m"] / per["city_fwd"]["OSD-Baseline"]["rmse_mean_m"]
+    assert f"| {ratio:.2f} |" in row
