@@ -316,7 +316,9 @@ def _rotation(o, ok, wheels, v, moving, step, wheel_step, have_yaw: bool) -> lis
     yaw_finding, factor = _yaw(o, ok, v, moving, wheel_ref, step[_I["yaw_rate_radps"]])
     ref = wheel_ref
     yaw_step = step[_I["yaw_rate_radps"]] * abs(factor or 0.0)
-    if have_yaw and factor is not None and yaw_step < wheel_ref.step:
+    # a track out of range puts the wheels in doubt (slip): the yaw rate is the reference then, however coarse
+    wheels_doubtful = yaw_finding.result == FAIL and yaw_finding.scale_factor not in (None, -1.0)
+    if have_yaw and factor is not None and (yaw_step < wheel_ref.step or wheels_doubtful):
         ref = _YawReference(o[:, _I["yaw_rate_radps"]] * factor, moving & ok[:, _I["yaw_rate_radps"]], yaw_step,
                             "yaw rate" + (" (as its fix would read)" if factor != 1.0 else ""), False)
     return [yaw_finding, _lateral(o, ok, v, ref, step[_I["lat_accel_mps2"]]),
@@ -325,7 +327,7 @@ def _rotation(o, ok, wheels, v, moving, step, wheel_step, have_yaw: bool) -> lis
 
 def _yaw(o, ok, v, moving, wheel_ref: _YawReference, yaw_step: float) -> tuple[Finding, float | None]:
     """Yaw rate against the rear wheel-speed difference; also the factor that makes the yaw rate a reference
-    (1 when right, -1 flipped, a unit factor; None when it does not follow the wheels or could not be checked)."""
+    (1 when right, -1 flipped, a unit conversion; None when it does not follow the wheels or was not checked)."""
     check, name = "yaw rate against rear wheel-speed difference", "yaw_rate_radps"
     yaw = o[:, _I[name]]
     rows = moving & ok[:, _I[name]]
@@ -347,8 +349,11 @@ def _yaw(o, ok, v, moving, wheel_ref: _YawReference, yaw_step: float) -> tuple[F
     if not TRACK_RANGE_M[0] <= track <= TRACK_RANGE_M[1]:
         factor = track / TRACK_M
         detail = f"yaw rate implies a {track:.2f} m track (expected {TRACK_RANGE_M[0]}-{TRACK_RANGE_M[1]} m)"
+        # a unit mistake is fixed for the checks after this one; any other factor is more likely the wheels'
+        # (slip, a wide track) than the gyro's: they go on with the yaw rate as it reads
+        snapped, hint = snap_factor(factor)
         return Finding(check, name, FAIL, detail, _scale_fix(factor), factor, r=t.r, gain=track,
-                       evidence=t.evidence), snap_factor(factor)[0]
+                       evidence=t.evidence), snapped if hint else 1.0
     return Finding(check, name, PASS, f"{t.summary()}, implied track {track:.2f} m", r=t.r, gain=track,
                    evidence=t.evidence), 1.0
 
