@@ -21,7 +21,8 @@ _OVERRIDES: tuple[tuple[str, str | None, str], ...] = (
 _RECORDED: tuple[tuple[str, str, str], ...] = (
     ("--log", "LOG", "a recorded CAN log of this car (any python-can format): check the map and DBC against it: "
                      "every signal's frames, rate, range, resolution and validity, signals never seen, and signs and "
-                     "scales from physics (a few minutes with turns, some at low speed)"),
+                     "scales from physics (a few minutes with some curves). Exit status 0 OK, 1 FAIL, 3 NOT "
+                     "VERIFIED (a sign check could not run on this drive: drive curves)"),
     ("--data", "DIR", "a folder of ReV-StED-schema CSVs (or one CSV): check the sign conventions of the ground "
                       "truth and the onboard columns from physics"),
 )
@@ -63,14 +64,14 @@ def run(args: argparse.Namespace) -> int:
 def _check_log(args: argparse.Namespace, cfg) -> int:
     import json
 
-    from prml2_edge.service.log_doctor import check_log_file, format_report
+    from prml2_edge.service.log_doctor import EXIT_CODES, check_log_file, format_report
 
     report = check_log_file(args.log, cfg.signals.map, cfg.signals.dbc)
     if args.json:
         print(json.dumps(report.as_dict()))
     else:
         print(format_report(report))
-    return 0 if report.ok else 1
+    return EXIT_CODES[report.verdict]  # OK 0, FAIL 1, NOT VERIFIED 3 (a check could not run on this drive)
 
 
 def _check_data(args: argparse.Namespace) -> int:

@@ -1,15 +1,21 @@
 """``prml2 doctor --log LOG``: check a signal map and DBC against one recorded drive of the car.
 
-The log is read through the runtime's own decoder and 50 Hz assembler (the same checks the
-runtime applies), then reported per canonical signal: frames of its message, measured rate
-against the map's ``rate_hz``, range, resolution and validity; every mapped signal never seen
-(naming message and ID); and the physics checks of :mod:`prml2_edge.data.signal_checks` (signs and
-scales), each failure with the signal to blame and the fix for the map.
+The log is read with the runtime's own log loop (:func:`~prml2_edge.runtime.offline.read_chunks`), decoder
+and 50 Hz assembler (the same checks the runtime applies), then reported per canonical signal: frames of
+its message, measured rate against the map's ``rate_hz``, range, resolution and validity; every mapped
+signal never seen (naming message and ID); and the physics checks of :mod:`prml2_edge.data.signal_checks`
+(signs and scales), each failure with the signal to blame and the fix for the map.
+
+The verdict (:attr:`LogReport.verdict`, exit status :data:`EXIT_CODES`): ``FAIL`` (1) when anything is to
+fix (a damaged log, a signal never seen or mostly rejected, a physics check failed); else ``NOT VERIFIED``
+(3) when a physics check could not run on this drive (too little turning, too few moving rows: the line
+names the signals and the driving that would verify them); ``OK`` (0) only when every check ran and passed.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from contextlib import closing
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import can
@@ -17,13 +23,27 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.can.signal_map import SignalMap, load_map_and_dbc, resolve_map
-from prml2_edge.data.signal_checks import FAIL, PASS, SKIP, WARN, Finding, check_onboard, snap_factor
-from prml2_edge.errors import DataError, first_line
+from prml2_edge.data.signal_checks import (
+    FAIL,
+    MIN_TURN_S,
+    PASS,
+    ROTATION_SIGNALS,
+    SKIP,
+    WARN,
+    Finding,
+    check_onboard,
+    resolution,
+    snap_factor,
+)
+from prml2_edge.errors import DataError
 from prml2_edge.runtime.assembler import Assembler
 from prml2_edge.runtime.decode import FrameDecoder
+from prml2_edge.runtime.offline import read_chunks
 from prml2_edge.runtime.source import check_log, truncation_problem
 from prml2_edge.runtime.status import FrameStatus
 
+OK, NOT_VERIFIED = "OK", "NOT VERIFIED"
+EXIT_CODES = {OK: 0, FAIL: 1, NOT_VERIFIED: 3}  # prml2 doctor --log; 2 stays argparse's usage error
 RATE_TOL = 0.2  # measured rate within +-20 % of the declared one
 MIN_VALID_SHARE = 0.95
 
@@ -60,12 +80,26 @@ class LogReport:
     problem: str | None = None  # the log is damaged (checked up to the damage)
 
     @property
+    def verdict(self) -> str:
+        """``FAIL`` (something to fix), ``NOT VERIFIED`` (a physics check could not run) or ``OK`` (all ran, passed)."""
+        if self.problem is not None or any(s.result == FAIL for s in self.signals) or \
+                any(f.result == FAIL for f in self.physics):
+            return FAIL
+        return NOT_VERIFIED if self.unverified else OK
+
+    @property
     def ok(self) -> bool:
-        return self.problem is None and not any(s.result == FAIL for s in self.signals) and \
-            not any(f.result == FAIL for f in self.physics)
+        return self.verdict == OK
+
+    @property
+    def unverified(self) -> list[Finding]:
+        """The physics checks that could not run on this log (SKIP)."""
+        return [f for f in self.physics if f.result == SKIP]
 
     def as_dict(self) -> dict:
-        return {"ok": self.ok, "log": self.log, "map": self.map, "dbc": self.dbc, "frames": self.frames,
+        return {"ok": self.ok, "verdict": self.verdict, "exit_code": EXIT_CODES[self.verdict],
+                "summary": summary_line(self), "unverified": [f.signal for f in self.unverified],
+                "log": self.log, "map": self.map, "dbc": self.dbc, "frames": self.frames,
                 "duration_s": self.duration_s, "problem": self.problem,
                 "signals": [asdict(s) for s in self.signals], "physics": [f.as_dict() for f in self.physics]}
 
@@ -77,13 +111,63 @@ def _scale_fix(spec, factor: float) -> str:
     return f"set scale = {new:.10g} in [signals.{spec.name}]" + (f" ({hint})" if hint else "")
 
 
-def _resolution(values: np.ndarray) -> float | None:
-    u = np.unique(values)
-    if len(u) < 2:
-        return None
-    d = np.diff(u)
-    d = d[d > 1e-12]
-    return float(np.min(d)) if len(d) else None
+@dataclass
+class _Tally:
+    """What the log's frames say, gathered as they stream through the decoder and the assembler."""
+
+    times: dict[str, list[float]]  # message -> frame timestamps
+    rejected: dict[str, dict[str, int]] = field(default_factory=dict)  # message -> reason -> frames
+    values: list[list[float]] = field(default_factory=lambda: [[] for _ in range(schema.NUM_SIGNALS)])
+    rows_v: list = field(default_factory=list)
+    rows_ok: list = field(default_factory=list)
+    n: int = 0
+    t_first: float = 0.0
+    t_last: float = 0.0
+
+    def add_rows(self, rows) -> None:
+        for row in rows:
+            self.rows_v.append(row.values)
+            self.rows_ok.append(row.valid)
+
+
+def _read(path: Path, decoder: FrameDecoder, assembler: Assembler, max_frames: int | None) -> tuple[_Tally, str | None]:
+    """Every frame of the log through ``decoder`` and ``assembler`` (the runtime's one log-reading loop,
+    :func:`~prml2_edge.runtime.offline.read_chunks`); the problem of a damaged log, or None."""
+    by_id = {fid: plan.name for fid, plan in decoder.plans.items()}
+    tally = _Tally({plan.name: [] for plan in decoder.plans.values()})
+    problem = None
+    with closing(read_chunks(path)) as chunks:
+        for frames, problem in chunks:
+            for msg in frames if max_frames is None else frames[:max_frames - tally.n]:
+                _take(tally, msg, by_id.get(msg.arbitration_id), decoder, assembler)
+            if max_frames is not None and tally.n >= max_frames:
+                problem = None  # any damage lies past the frames asked for
+                break
+    if problem is None:
+        cut = truncation_problem(path)
+        if cut is not None:
+            problem = f"{path}: CAN log cut short after {tally.n} frames ({cut})"
+    return tally, problem
+
+
+def _take(tally: _Tally, msg: can.Message, name: str | None, decoder: FrameDecoder, assembler: Assembler) -> None:
+    """One frame: its timestamp, why it was rejected, the values it gave and the rows it completed."""
+    if tally.n == 0:
+        tally.t_first = msg.timestamp
+    tally.t_last = msg.timestamp
+    tally.n += 1
+    frame = decoder.step(msg)
+    if name is not None and not msg.is_error_frame and not msg.is_remote_frame:
+        tally.times[name].append(msg.timestamp)
+        if frame.status.is_rejected:
+            reason = frame.status.name.removeprefix("REJECTED_").lower()
+            counts = tally.rejected.setdefault(name, {})
+            counts[reason] = counts.get(reason, 0) + 1
+    if frame.status is FrameStatus.USED:
+        for i, v, ok in zip(frame.index, frame.value_si, frame.ok, strict=True):
+            if ok:
+                tally.values[i].append(v)
+    tally.add_rows(assembler.step(frame)[1])
 
 
 def check_log_file(log: str | Path, map_name: str | Path = "prml2_onboard", dbc: str | Path | None = None,
@@ -93,66 +177,28 @@ def check_log_file(log: str | Path, map_name: str | Path = "prml2_onboard", dbc:
     smap, db, dbc_path = load_map_and_dbc(resolve_map(map_name), dbc)
     decoder = FrameDecoder(smap, db)
     assembler = Assembler.for_map(smap)
-    by_id = {fid: plan.name for fid, plan in decoder.plans.items()}
-    times: dict[str, list[float]] = {plan.name: [] for plan in decoder.plans.values()}
-    rejected: dict[str, dict[str, int]] = {}
-    values: list[list[float]] = [[] for _ in range(schema.NUM_SIGNALS)]
-    rows_v, rows_ok = [], []
-    n = 0
-    t_first = t_last = 0.0
-    problem = None
-    try:
-        with can.LogReader(str(path)) as reader:
-            for msg in reader:
-                if n == 0:
-                    t_first = msg.timestamp
-                t_last = msg.timestamp
-                n += 1
-                name = by_id.get(msg.arbitration_id)
-                frame = decoder.step(msg)
-                if name is not None and not msg.is_error_frame and not msg.is_remote_frame:
-                    times[name].append(msg.timestamp)
-                    if frame.status.is_rejected:
-                        reason = frame.status.name.removeprefix("REJECTED_").lower()
-                        rejected.setdefault(name, {})[reason] = rejected.get(name, {}).get(reason, 0) + 1
-                for i, v, ok in zip(frame.index, frame.value_si, frame.ok, strict=True):
-                    if ok and frame.status is FrameStatus.USED:
-                        values[i].append(v)
-                _, rows = assembler.step(frame)
-                for row in rows:
-                    rows_v.append(row.values)
-                    rows_ok.append(row.valid)
-                if max_frames is not None and n >= max_frames:
-                    break
-    except Exception as exc:  # a damaged log: report what came before the damage
-        problem = f"{path}: cannot read CAN log after {n} frames ({first_line(exc, 200)})"
-    if problem is None:
-        cut = truncation_problem(path)
-        if cut is not None:
-            problem = f"{path}: CAN log cut short after {n} frames ({cut})"
-    if n == 0:
+    tally, problem = _read(path, decoder, assembler, max_frames)
+    if tally.n == 0:
         raise DataError(problem or f"{path}: CAN log holds no frames")
-    for row in assembler.flush():
-        rows_v.append(row.values)
-        rows_ok.append(row.valid)
-    duration = max(t_last - t_first, 1e-9)
-    onboard = np.asarray(rows_v).reshape(-1, schema.NUM_SIGNALS)
-    valid = np.asarray(rows_ok, dtype=bool).reshape(-1, schema.NUM_SIGNALS)
+    tally.add_rows(assembler.flush())
+    duration = max(tally.t_last - tally.t_first, 1e-9)
+    onboard = np.asarray(tally.rows_v).reshape(-1, schema.NUM_SIGNALS)
+    valid = np.asarray(tally.rows_ok, dtype=bool).reshape(-1, schema.NUM_SIGNALS)
 
-    reports = [_signal_report(smap, spec, times, rejected, values, valid, duration, decoder)
+    reports = [_signal_report(smap, spec, tally.times, tally.rejected, tally.values, valid, duration, decoder)
                for spec in smap.signals]
-    present = tuple(not s.absent and bool(values[i]) for i, s in enumerate(smap.signals))
-    physics = check_onboard(onboard, valid, present) if len(onboard) else []
+    present = tuple(not s.absent and bool(tally.values[i]) for i, s in enumerate(smap.signals))
+    steps = [next((r.resolution for r in reports if r.name == name), None) for name in schema.SIGNAL_NAMES]
+    physics = check_onboard(onboard, valid, present, steps) if len(onboard) else []
     by_name = {s.name: s for s in smap.signals}
     physics = [_with_map_fix(f, by_name[f.signal]) for f in physics]
-    return LogReport(str(path), smap.name, str(dbc_path), n, duration, reports, physics, problem)
+    return LogReport(str(path), smap.name, str(dbc_path), tally.n, duration, reports, physics, problem)
 
 
 def _with_map_fix(f: Finding, spec) -> Finding:
     if f.result != FAIL or f.scale_factor is None:
         return f
-    return Finding(f.check, f.signal, f.result, f.detail, _scale_fix(spec, f.scale_factor), f.scale_factor, f.r,
-                   f.gain)
+    return replace(f, fix=_scale_fix(spec, f.scale_factor))
 
 
 def _signal_report(smap: SignalMap, spec, times, rejected, values, valid, duration, decoder) -> SignalReport:
@@ -181,7 +227,7 @@ def _signal_report(smap: SignalMap, spec, times, rejected, values, valid, durati
         return rep
     v = np.asarray(values[i])
     rep.min, rep.max = float(v.min()), float(v.max())
-    rep.resolution = _resolution(v)
+    rep.resolution = resolution(v)
     rep.valid_share = float(valid[:, i].mean()) if len(valid) else None
     if rep.rate_hz is not None and abs(rep.rate_hz / spec.rate_hz - 1.0) > RATE_TOL:
         rep.result = WARN
@@ -238,12 +284,44 @@ def format_report(report: LogReport) -> str:
         lines.append(f"  {f.result:<5} {f.check} ({f.signal}): {f.detail}")
         if f.result == FAIL and f.fix:
             lines.append(f"        -> {f.signal}: {f.fix}")
-    n_fail = sum(s.result == FAIL for s in report.signals) + sum(f.result == FAIL for f in report.physics)
-    n_warn = sum(s.result == WARN for s in report.signals) + sum(f.result in (WARN, SKIP) for f in report.physics)
-    lines.append("")
-    lines.append("OK: the map reads this log as the physics expects" if report.ok else
-                 f"{n_fail} problem(s) to fix" + (f", {n_warn} warning(s)/unchecked" if n_warn else ""))
+    lines += ["", summary_line(report)]
     return "\n".join(lines)
+
+
+_SPOKEN = {"yaw_rate_radps": "yaw rate", "lat_accel_mps2": "lateral acceleration",
+           "steering_wheel_angle_rad": "steering", "speedometer_mps": "speedometer",
+           **{n: n.removesuffix("_mps").replace("_", " ") for n in schema.WHEEL_SPEED_NAMES}}
+
+
+def summary_line(report: LogReport) -> str:
+    """The verdict in one line: OK, what is to fix, or which signals this log could not verify and what driving
+    would."""
+    verdict = report.verdict
+    if verdict == OK:
+        return "OK: the map reads this log as the physics expects (every check ran and passed)"
+    n_warn = sum(s.result == WARN for s in report.signals) + sum(f.result == WARN for f in report.physics)
+    skipped = report.unverified
+    if verdict == FAIL:
+        n_fail = sum(s.result == FAIL for s in report.signals) + sum(f.result == FAIL for f in report.physics) + \
+            (report.problem is not None)
+        rest = [f"{n_warn} warning(s)"] * bool(n_warn) + [f"{len(skipped)} not verified"] * bool(skipped)
+        return f"FAIL: {n_fail} problem(s) to fix" + (f", {', '.join(rest)}" if rest else "")
+    names = ", ".join(dict.fromkeys(_SPOKEN.get(f.signal, f.signal) for f in skipped))
+    return f"NOT VERIFIED: {names} ({_needs(skipped)})"
+
+
+def _needs(skipped: list[Finding]) -> str:
+    """What driving would let the skipped checks run, in one phrase."""
+    turning = [f for f in skipped if f.signal in ROTATION_SIGNALS and f.evidence is not None]
+    other = list(dict.fromkeys(f.needs or f.detail for f in skipped if f not in turning))
+    parts = []
+    if turning:
+        thr = max(f.evidence.threshold_dps for f in turning)
+        have = min(f.evidence.turning_s for f in turning)
+        parts.append(f"drive curves of at least {thr:.2g} deg/s of yaw rate, {MIN_TURN_S:g} s of them in all; "
+                     f"this log has {have:.1f} s")
+    parts += [f"drive {n}" if n[:1].isdigit() or n.startswith("at least") else n for n in other]
+    return "; ".join(parts)
 
 
 def culprits(report: LogReport) -> list[tuple[str, str]]:

@@ -3,7 +3,8 @@
 Each mistake turns a correct map (and a log encoded with it) into what a user would have: a
 map with a flipped sign or a wheel speed declared in m/s that is in km/h, or a log on which
 one mapped message never appears (the DBC is not this car's). :func:`expected_culprit` says
-which signal ``prml2 doctor --log`` must blame. This module only builds test input.
+which signal ``prml2 doctor --log`` must blame. :func:`straight_drive` is the drive on which no
+sign can be checked (doctor must say NOT VERIFIED, never OK). This module only builds test input.
 """
 
 from __future__ import annotations
@@ -12,7 +13,9 @@ import re
 from pathlib import Path
 
 import can
+import numpy as np
 
+from prml2_edge import schema
 from prml2_edge.can.signal_map import load_signal_map
 
 MISTAKES = ("flip_yaw", "flip_lat", "flip_steer", "wheel_kmh_as_mps", "message_absent")
@@ -73,3 +76,23 @@ def drop_message(log_in: str | Path, log_out: str | Path, frame_id: int) -> int:
                 continue
             writer.on_message_received(msg)
     return dropped
+
+
+def straight_drive(minutes: float, seed: int, vehicle: str = "reference"):
+    """A highway drive on a dead-straight road: the ``highway`` family's speeds and speed changes, the steering
+    wheel held straight (no bend, lane change or correction), the car's sensor errors drawn as for any drive."""
+    from prml2_edge.data.revsted import Drive
+    from prml2_edge.data.simulate import SensorErrors, get_car, simulate_vehicle
+    from prml2_edge.data.simulate.driver import plan_drive
+    from prml2_edge.data.simulate.sensors import onboard_signals
+
+    car = get_car(vehicle)
+    n = int(round(minutes * 60.0 * schema.SAMPLE_RATE_HZ))
+    rng = np.random.default_rng([int(seed), 0x5354])  # "ST"
+    plan = plan_drive(n, 1.0, "highway", rng, car.params)
+    trace = simulate_vehicle(car.params, 1.0, np.zeros(n), plan.accel_ff, plan.v_ref, free_steer=np.zeros(n, bool),
+                             v0_mps=plan.v0_mps)
+    onboard, _ = onboard_signals(trace, car.params, rng, SensorErrors.draw(rng, car.sensors), car.sensors)
+    return Drive(name=f"straight_{vehicle}_s{seed}", path=None, t_s=np.arange(n) * schema.DT_S, onboard=onboard,
+                 z_gt=None, pose_gt=None, meta={"family": "straight", "vehicle": vehicle, "seed": int(seed)},
+                 repairs={})
