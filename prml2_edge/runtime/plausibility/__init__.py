@@ -2,9 +2,9 @@
 
 A car's CAN bus carries the same motion several times over: four wheel speeds and the speedometer describe the
 speed; the yaw rate, the difference of the left and right wheels of each axle, the lateral acceleration over the
-speed (``a_y / v``) and the steering wheel angle through the single-track model (``delta_sw = ratio * (L / v + K v)
-* omega``) describe the rotation; the brake pressure is a deceleration the wheels must show. :class:`Plausibility`
-runs between the assembler and the localiser and, every 50 Hz row:
+speed (``a_y / v``) and the steering wheel angle through the single-track model
+(``delta_sw = ratio * (L / v + K v) * omega``) describe the rotation; the brake pressure is a deceleration the wheels
+must show. :class:`Plausibility` runs between the assembler and the localiser and, every 50 Hz row:
 
 1. **speed** — each wheel, corrected to the car's centre for the yaw rate and scaled by its learned rolling-radius
    ratio, against the median of the other wheels; the speedometer against its learned factor times the wheels' speed;
