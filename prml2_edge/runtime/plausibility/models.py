@@ -1,0 +1,82 @@
+"""The relations' learned models (recursive least squares with forgetting, exponential averages) and the robust
+statistics the checks take their references with (median, weighted median), in plain floats, one row at a time."""
+
+from __future__ import annotations
+
+import math
+
+
+class Rls:
+    """Recursive least squares with exponential forgetting, in plain floats (2 or 3 parameters)."""
+
+    def __init__(self, theta: list[float], prior_std: list[float], forget: float) -> None:
+        self.theta = list(theta)
+        n = len(theta)
+        self.P = [[(prior_std[i] ** 2 if i == j else 0.0) for j in range(n)] for i in range(n)]
+        self.max_var = [sd * sd for sd in prior_std]
+        self.forget = forget
+        self.n = 0
+
+    def update(self, phi: list[float], y: float, noise_var: float) -> None:
+        n = len(phi)
+        P = self.P
+        Pphi = [sum(P[i][j] * phi[j] for j in range(n)) for i in range(n)]
+        s = noise_var * self.forget + sum(phi[i] * Pphi[i] for i in range(n))
+        if not s > 0.0:
+            return
+        err = y - sum(self.theta[i] * phi[i] for i in range(n))
+        k = [p / s for p in Pphi]
+        for i in range(n):
+            self.theta[i] += k[i] * err
+        lam = self.forget
+        for i in range(n):
+            for j in range(n):
+                P[i][j] = (P[i][j] - k[i] * Pphi[j]) / lam
+        # no wind-up: a parameter the data do not excite (the track on a straight) keeps at most its prior
+        # uncertainty, so one odd sample cannot move it far
+        for i in range(n):
+            if P[i][i] > self.max_var[i]:
+                f = math.sqrt(self.max_var[i] / P[i][i])
+                for j in range(n):
+                    P[i][j] *= f
+                    P[j][i] *= f
+        self.n += 1
+
+    def predict(self, phi: list[float]) -> float:
+        return sum(t * p for t, p in zip(self.theta, phi, strict=True))
+
+
+class Ema:
+    """Exponential moving average ``value += alpha (x - value)``."""
+
+    __slots__ = ("a", "value")
+
+    def __init__(self, alpha: float, value: float = 0.0) -> None:
+        self.a = alpha
+        self.value = value
+
+    def update(self, x: float) -> float:
+        self.value += self.a * (x - self.value)
+        return self.value
+
+
+def weighted_median(items: list[tuple[float, float]]) -> tuple[float, float]:
+    """``(value, sigma)`` of the weighted median of ``(value, sigma)`` pairs, weights ``1 / sigma^2``."""
+    items = sorted(items)
+    w = [1.0 / (sd * sd) for _, sd in items]
+    half = 0.5 * sum(w)
+    acc = 0.0
+    for (value, sd), wi in zip(items, w, strict=True):
+        acc += wi
+        if acc >= half:
+            return value, sd
+    return items[-1]
+
+
+def median(xs: list[float]) -> float:
+    """The median of ``xs`` (the mean of the middle two for an even count)."""
+    s = sorted(xs)
+    n = len(s)
+    m = n // 2
+    return s[m] if n % 2 else 0.5 * (s[m - 1] + s[m])
+
