@@ -23,7 +23,8 @@ SIGNAL_UNITS = {VS: ("m/s", 1.0), SW: ("deg", 1 / _DEG), YAW: ("deg/s", 1 / _DEG
 @dataclass(frozen=True)
 class PlausibilityConfig:
     """Tunables of :class:`~prml2_edge.runtime.plausibility.Plausibility` (SI units). Chosen on the simulated
-    fleet's training cars (``benchmarks/reliability.py`` reports the held-out car); the README explains each."""
+    fleet's training cars (``benchmarks/reliability.py`` reports the held-out car);
+    docs/reliability.md explains each."""
 
     enabled: bool = True
     min_speed_mps: float = 5.0  # cross-checks run above this speed
