@@ -140,3 +140,24 @@ def test_highway_starts_at_speed_never_stops_and_stays_gentle():
     assert "standstill" not in {name for _, name in d.meta["manoeuvres"]}
     for k, sig in enumerate(schema.SIGNALS):
         assert sig.min <= d.onboard[:, k].min() and d.onboard[:, k].max() <= sig.max
+
+
+@pytest.mark.parametrize("family,mu", [("longitudinal", 1.0), ("lateral", 0.9), ("mixed", 1.0), ("snow", 0.3),
+                                       ("highway", 1.0)])
+def test_no_standstill_drive_never_stops_and_stays_within_physics(family, mu):
+    d = simulate_drive(3.0, mu, seed=2, family=family, standstill=False)
+    z = d.z_gt
+    assert np.all(np.isfinite(z)) and np.all(np.isfinite(d.onboard))
+    assert z[0, 0] >= 8.0 and z[:, 0].min() > 1.0 and z[:, 0].max() <= schema.V_MAX_MPS  # starts at speed, never 0
+    wheels = d.onboard[:, [schema.SIGNAL_BY_NAME[n].index for n in schema.WHEEL_SPEED_NAMES]]
+    assert wheels.min() > 1.0  # no wheel ever reads standstill: nothing calibrates a gyro at rest
+    acc = np.hypot(z[:, 2], z[:, 3])
+    assert np.percentile(acc, 99.5) <= mu * schema.G_MPS2 * 1.02
+    assert np.abs(z[:, 4]).max() <= schema.OMEGA_MAX_RADPS
+    assert np.percentile(np.abs(np.diff(z[:, 2])) / schema.DT_S, 99) < 15.0
+    assert not {"standstill", "stop"} & {name for _, name in d.meta["manoeuvres"]}
+    assert d.meta["standstill"] is False
+    for k, sig in enumerate(schema.SIGNALS):
+        assert sig.min <= d.onboard[:, k].min() and d.onboard[:, k].max() <= sig.max
+    # the option leaves the default drive alone
+    assert "standstill" not in simulate_drive(0.3, mu, seed=2, family=family).meta

@@ -27,7 +27,7 @@ HIGHWAY_HOME_RADIUS_M = 3000.0  # a highway leaves the test track's 700 m; turn 
 
 def simulate_drive(minutes: float, mu: float, seed: int, family: str = "mixed", name: str | None = None,
                    progress: bool = False, sensor_errors: dict | None = None,
-                   vehicle: str | Car = "reference") -> Drive:
+                   vehicle: str | Car = "reference", standstill: bool = True) -> Drive:
     """Simulate one drive and return it with ground truth.
 
     Parameters
@@ -50,12 +50,16 @@ def simulate_drive(minutes: float, mu: float, seed: int, family: str = "mixed", 
         number (all four wheels).
     vehicle : str or Car
         A car of the simulated fleet (:data:`CARS`; default ``reference``, the ReV-StED-like car).
+    standstill : bool
+        False: the driver never stops (starts at speed, no standstill manoeuvre, brakes end at 3 m/s
+        or faster; :func:`~prml2_edge.data.simulate.driver.plan_drive`), so no standstill calibrates a
+        gyro offset. True (default): the family's plan as it always was, bit for bit.
 
     Returns
     -------
     Drive
         ``t_s`` from 0 s; ``meta`` records family, mu, seed, snow, the sensor errors and
-        the manoeuvre sequence.
+        the manoeuvre sequence (and ``standstill: false`` when the driver never stopped).
     """
     if family not in FAMILIES:
         raise ConfigError(f"unknown family {family!r}; choose one of {', '.join(FAMILIES)}")
@@ -69,7 +73,7 @@ def simulate_drive(minutes: float, mu: float, seed: int, family: str = "mixed", 
     rng = np.random.default_rng([int(seed), 0x50524D4C])  # "PRML"
     car = vehicle if isinstance(vehicle, Car) else get_car(vehicle)
     params = car.params
-    plan = plan_drive(n, mu, family, rng, params)
+    plan = plan_drive(n, mu, family, rng, params, standstill=standstill)
     psi0 = float(rng.uniform(-np.pi, np.pi))
     bar = Progress(n, desc=f"simulate {name or family}", unit="samples", enabled=None if progress else False)
     try:
@@ -95,5 +99,7 @@ def simulate_drive(minutes: float, mu: float, seed: int, family: str = "mixed", 
         "sensor_errors": errors.as_dict(),
         "manoeuvres": [[int(k), lab] for k, lab in plan.manoeuvre],
     }
+    if not standstill:
+        meta["standstill"] = False
     return Drive(name=name or f"sim_{family}_s{seed}", path=None, t_s=np.arange(n) * schema.DT_S,
                  onboard=onboard, z_gt=z_gt, pose_gt=pose, meta=meta, repairs={})

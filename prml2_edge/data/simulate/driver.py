@@ -17,6 +17,11 @@ Families (method.md; paper Sec. IV):
   slow lane changes and gentle speed changes. No standstill, so nothing calibrates a gyro
   offset for free (issue 28: what real highway logs look like).
 
+``standstill=False`` (any family) is the same test-track driver without stops: the drive starts
+at speed (:data:`NO_STOP_V0_MPS`), the ``standstill`` manoeuvre is out of the catalogue and a
+``brake`` ends at :data:`NO_STOP_V_MIN_MPS` or faster. Nothing calibrates a gyro offset at rest,
+as on a real car that never stops (``benchmarks/robustness.py``, issue 26).
+
 Accelerations stay inside what a driver does on a test track: longitudinal up to
 ~0.6 mu g (emergency-like stops rarer), lateral up to ~0.75 mu g.
 """
@@ -35,6 +40,8 @@ FAMILIES = ("longitudinal", "lateral", "mixed", "snow", "highway")
 HIGHWAY_V0_MPS = (14.0, 25.0)
 HIGHWAY_AY_MAX_MPS2 = 1.2
 V_MAX_PLAN_MPS = 28.0
+NO_STOP_V0_MPS = (8.0, 16.0)  # standstill=False: start speed of a test-track family [m/s]
+NO_STOP_V_MIN_MPS = 3.0  # standstill=False: the lowest speed a brake manoeuvre ends at [m/s]
 DT = schema.DT_S
 
 
@@ -52,10 +59,11 @@ class DriverPlan:
 
 
 class _Builder:
-    def __init__(self, rng: np.random.Generator, mu: float, family: str) -> None:
+    def __init__(self, rng: np.random.Generator, mu: float, family: str, v_min: float = 0.0) -> None:
         self.rng = rng
         self.mu = mu
         self.family = family
+        self.v_min = v_min  # the lowest speed a brake ends at (0: to standstill)
         self.v = 0.0
         self.v_parts: list[np.ndarray] = []
         self.a_parts: list[np.ndarray] = []
@@ -118,7 +126,7 @@ class _Builder:
         self.speed_change(min(v_t, V_MAX_PLAN_MPS), self.rng.uniform(0.35, 1.0) * self.a_long, name="accelerate")
 
     def brake(self) -> None:
-        v_t = self.rng.uniform(0.0, max(0.0, self.v - 4.0))
+        v_t = self.rng.uniform(self.v_min, max(self.v_min, self.v - 4.0))
         a = self.rng.uniform(0.4, 1.0) * self.a_long * (1.4 if self.rng.random() < 0.15 else 1.0)
         self.speed_change(v_t, min(a, 0.8 * self.mu * schema.G_MPS2), name="brake")
 
@@ -222,18 +230,24 @@ _CATALOGUE["highway"] = {"highway_cruise": 4, "highway_speed": 1.5, "highway_lan
 
 
 def plan_drive(n_samples: int, mu: float, family: str, rng: np.random.Generator,
-               params: VehicleParams | None = None) -> DriverPlan:
-    """A driver plan of ``n_samples`` 50 Hz samples for ``family`` at friction ``mu``."""
+               params: VehicleParams | None = None, standstill: bool = True) -> DriverPlan:
+    """A driver plan of ``n_samples`` 50 Hz samples for ``family`` at friction ``mu``.
+
+    ``standstill=False``: the driver never stops (starts at speed, no ``standstill`` manoeuvre, brakes
+    end at :data:`NO_STOP_V_MIN_MPS` or faster); the default plan is unchanged by the option.
+    """
     if family not in FAMILIES:
         raise ValueError(f"unknown family {family!r}; one of {', '.join(FAMILIES)}")
     p = params or VehicleParams()
-    b = _Builder(rng, mu, family)
-    cat = _CATALOGUE[family]
+    b = _Builder(rng, mu, family, v_min=0.0 if standstill else NO_STOP_V_MIN_MPS)
+    cat = {k: w for k, w in _CATALOGUE[family].items() if standstill or k != "standstill"}
     names = list(cat)
     weights = np.array([cat[k] for k in names], dtype=float)
     weights /= weights.sum()
     if family == "highway":
         b.v = v0 = float(rng.uniform(*HIGHWAY_V0_MPS))
+    elif not standstill:
+        b.v = v0 = float(rng.uniform(*NO_STOP_V0_MPS))
     else:
         v0 = 0.0
         b.hold(rng.uniform(2.0, 5.0), name="standstill", free=False)
