@@ -141,6 +141,11 @@ def sensor_profile(doc: dict) -> list[str]:
     return out + ["", f"Speedometer / mean wheel speed: real {sp['real']:.3f}, simulated {sp['sim']:.3f}."]
 
 
+def robustness(doc: dict) -> list[str]:
+    import robustness as rob  # the evaluation's imports: only when there is a robustness.json
+    return rob.markdown(doc)
+
+
 # block name -> (JSON files it reads, renderer taking one document per file, None where the file is missing)
 RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., list[str]]]] = {
     "latency": (("latency",), latency),
@@ -152,6 +157,7 @@ RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., list[str]]]] = {
     "calibration_replay_highway": (("calibration_replay_highway",), calibration_replay_highway),
     "sim_realism": (("sim_realism",), sim_realism),
     "sensor_profile": (("sensor_profile",), sensor_profile),
+    "robustness": (("robustness",), robustness),
 }
 
 

@@ -226,6 +226,23 @@ def table_rows(doc: dict) -> list[str]:
     return out
 
 
+def markdown(doc: dict) -> list[str]:
+    """The table, the verdict against both targets and how the OSD baseline was tuned (``render_tables.py``)."""
+    out = table_rows(doc) + [""]
+    for k, v in doc["verdict"].items():
+        ok_ref, ok_osd = ("met" if v[m] else "**missed**" for m in ("meets_1_3", "meets_osd"))
+        out.append(f"- {k}: PRML2 drift {v['model_vs_no_offset']:.2f} × its no-offset drift "
+                   f"(≤ {TARGET_VS_NO_OFFSET:g}: {ok_ref}), {v['model_vs_osd']:.2f} × OSD's "
+                   f"(≤ {TARGET_VS_OSD:g}: {ok_osd})")
+    p = doc["protocol"]
+    out += ["", f"Drift: mean over windows of the 60 s end error over the distance; intervals: paired bootstrap 95 % "
+            f"over windows. OSD noise: {p['osd_tuning']} ({p['val_windows']} windows, Q scale "
+            f"{p['osd'].get('q_scale', float('nan')):.3g}); standstill samples the OSD bias could use: "
+            f"{p['osd_standstill_samples_max']}. {doc['wall_s'] / 60:.0f} min, load "
+            f"{doc['machine'].get('load_average')}."]
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", default=str(MODEL), help="ONNX model to score (default: the shipped one)")
@@ -249,13 +266,7 @@ def main(argv: list[str] | None = None) -> int:
     doc["verdict"] = verdict(doc["groups"])
     doc["targets_met"] = {k: all(v[k] for v in doc["verdict"].values()) for k in ("meets_1_3", "meets_osd")}
     doc["wall_s"] = round(time.monotonic() - t0, 1)
-    print("\n".join(table_rows(doc)))
-    for k, v in doc["verdict"].items():
-        print(f"{k}: PRML2 drift x{v['model_vs_no_offset']:.2f} of no offset (target ≤ {TARGET_VS_NO_OFFSET:g}: "
-              f"{'met' if v['meets_1_3'] else 'MISSED'}), x{v['model_vs_osd']:.2f} of OSD (target ≤ "
-              f"{TARGET_VS_OSD:g}: {'met' if v['meets_osd'] else 'MISSED'})")
-    print(f"OSD noise: {OSD_TUNING} ({notes['val_windows']} windows, Q scale {notes['osd'].get('q_scale')}); "
-          f"{doc['wall_s']:.0f} s")
+    print("\n".join(markdown(doc)))
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(doc, indent=1) + "\n")
