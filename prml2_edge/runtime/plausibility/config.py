@@ -63,6 +63,7 @@ class PlausibilityConfig:
     brake_min_bar: float = 3.0  # pressure above idle that counts as braking (learning the gain)
     wheel_yaw_max_accel_mps2: float = 2.5  # the wheel pairs estimate the rotation below this |a_x| ...
     wheel_yaw_slip: float = 0.001  # ... with an uncertainty of this times |a_x a_y| v / track (left/right slip)
+    learned_sd: bool = True  # ... plus the uncertainty of the pair's learned track and radius difference
     ay_check_max_mps2: float = 6.0  # rotation relations are linear below this lateral acceleration
     stuck_hold_s: float = 0.5
     dropout_tol: float = 4.0  # a signal reading 0 this many tolerances from its prediction is flagged at once

@@ -66,6 +66,7 @@ class Relations:
         self._est_lp = {RL: Ema(dt / cfg.inertial_lag_s), FL: Ema(dt / cfg.inertial_lag_s),
                         SW: Ema(dt / cfg.inertial_lag_s)}
         self._est_seen: dict[int, bool] = {RL: False, FL: False, SW: False}
+        self._lsd: dict[int, float] = {RL: 0.0, FL: 0.0}  # what the wheel pairs' learned relations do not know
         self.moving_s = 0.0
         self.turning_s = 0.0
         self.braking_s = 0.0
@@ -238,7 +239,20 @@ class Relations:
                     a_lat = abs(x[AY]) if valid[AY] else abs(v * w)
                     sd[s_] = ((0.005 + 0.0003 * v + cfg.wheel_yaw_slip * abs(decel) * a_lat * v) / 1.56
                               + 0.02 * abs(est[s_]) + cfg.lag_yaw_s * env)
+                    self._lsd[s_] = self._learned_sd(self.rear if s_ == RL else self.front, est[s_], v)
             self._est_seen[s_] = s_ in est
+
+    def _learned_sd(self, pair, omega: float, v: float) -> float:
+        """What the pair's learned track and radius difference do not know yet, as a rotation [rad/s]: the
+        prediction's standard deviation ``sqrt(phi' P phi)`` over the track, ``phi = (omega, v)``. Gentle highway
+        curves barely excite the track, and a gyro offset nobody calibrated teaches the radius difference a
+        bias. It widens the tolerance of a check whose reference is that pair (not the pair's weight: the
+        references and the jump detector see the same estimates as before)."""
+        if not self.cfg.learned_sd:
+            return 0.0
+        P = pair.P
+        var = P[0][0] * omega * omega + 2.0 * P[0][1] * omega * v + P[1][1] * v * v
+        return math.sqrt(max(var, 0.0)) / max(pair.theta[0], 0.5)
 
     def _sources(self, est, sd, ok, valid) -> dict[int, float]:
         """The estimates that may predict the others: unflagged ones and the wheel pairs, less a pair that
@@ -278,6 +292,8 @@ class Relations:
         for s in (YAW, AY, SW):
             others = [(e, sd[k]) for k, e in sources_ok.items() if k != s]
             w_ref, sd_ref = weighted_median(others) if others else (omega, math.inf)
+            ref_key = next((k for k, e in sources_ok.items() if k != s and e == w_ref), None)
+            sd_ref += self._lsd.get(ref_key, 0.0) if ref_key in (RL, FL) else 0.0
             if not others and not (v_hat is not None and v < 1.0):
                 pass  # nothing left to predict the rotation from
             elif s == YAW:
