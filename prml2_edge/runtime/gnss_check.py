@@ -68,7 +68,7 @@ class FixNoise:
 
     At a steady fix rate, ``p[k+1] - 2 p[k] + p[k-1]`` is white noise of variance ``6 sigma^2`` plus
     the car's acceleration times ``dt^2`` (centimetres at 10 Hz). A robust scale (the median of the
-    squares over the last :attr:`WINDOW` triples, both axes) gives ``sigma`` from ten fixes on; a
+    squares over the last :attr:`WINDOW` triples, both axes) gives ``sigma`` from seven fixes on; a
     consumer receiver's 1.5 m shows as 1.5 m where the configuration says 0.5 m. Slow, correlated
     errors (multipath) do not show here, and need no wider gate: the filter follows them. Until five
     triples are in (the first half second at 10 Hz) the noise is not known: :attr:`std_m` is None
@@ -134,7 +134,7 @@ class GnssCheck:
         self._trusted = 0  # fixes trusted since the start (the check arms after arm_fixes)
         self._psi_std0 = 0.0  # the filter's heading uncertainty when the suspicion began [rad]
         self._rate_std0 = 0.0  # ... and its yaw-rate offset uncertainty [rad/s]
-        self.fix_std_m = 0.5  # the GNSS noise per axis the tolerance assumes (set by the filter)
+        self.fix_std_m = 0.5  # the GNSS noise per axis the tolerance assumes (the filter sets it before every fix)
         self.last_discrepancy_m = 0.0
         self._now = 0.0
 
