@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import multiprocessing
 import os
 from concurrent.futures import ProcessPoolExecutor
@@ -54,16 +55,19 @@ def _benchmark_recipe() -> dict:
 
     Per fleet car: 3 x 6 min training drives (one per family), a 4 min validation drive, two 5.5 min
     test drives (10 dry 60 s windows), a 7 min snow drive (6 windows): 50 dry and 30 snow test
-    windows. Held-out car: 2 x 4 min to fine-tune on, 3 min validation, 3 x 5.5 min test.
+    windows. Held-out car: 2 x 4 min to fine-tune on, 3 min validation, 3 x 5.5 min test. Last, the
+    real-car drives of :func:`_add_realcar_drives`.
     """
     rng = np.random.default_rng(20261201)
     drives = []
 
-    def add(vehicle: str, split: str, family: str, minutes: float, k: int, mu: float | None = None) -> None:
+    def add(vehicle: str, split: str, family: str, minutes: float, k: int, mu: float | None = None,
+            sensor_errors: dict | None = None) -> None:
         role = "snow" if family == "snow" else "dry"
         mu = round(float(rng.uniform(0.8, 1.0)), 3) if mu is None else mu
         drives.append({"name": f"{vehicle}_{split}_{k}", "vehicle": vehicle, "split": split, "family": family,
-                       "mu": mu, "seed": 3000 + len(drives), "minutes": minutes, "role": role})
+                       "mu": mu, "seed": 3000 + len(drives), "minutes": minutes, "role": role,
+                       **({"sensor_errors": sensor_errors} if sensor_errors else {})})
 
     snow_mu = (0.2, 0.3, 0.4, 0.5, 0.35)
     for i, car in enumerate(FLEET):
@@ -79,7 +83,26 @@ def _benchmark_recipe() -> dict:
         add(car, "val", "mixed", 3.0, 0)
         for k, family in enumerate(("mixed", "longitudinal", "lateral")):
             add(car, "test", family, 5.5, k)
+    _add_realcar_drives(add, rng)
     return {"name": "benchmark", "heldout": list(HELDOUT), "drives": drives}
+
+
+REALCAR_YAW_OFFSET_DPS = 0.6  # the largest uncalibrated CAN yaw-rate offset the training drives have [deg/s]
+
+
+def _add_realcar_drives(add, rng: np.random.Generator) -> None:
+    """Per fleet car, drives with the sensor errors real cars have and the simulator's ESC model spares them
+    (issue 26): an uncalibrated yaw-rate offset drawn uniformly within +-:data:`REALCAR_YAW_OFFSET_DPS`, once on
+    a 6 min ``highway`` drive (never stops, so nothing shows the offset at rest) and once on a 6 min ``mixed``
+    one, both for training; a 3 min ``highway`` validation drive with its own offset, so that the shipped
+    model is chosen on them too. They come after every other drive: the earlier drives, the test and held-out
+    ones among them, keep their seeds and draws bit for bit.
+    """
+    for car in FLEET:
+        for split, family, minutes, k in (("train", "highway", 6.0, 3), ("train", "mixed", 6.0, 4),
+                                          ("val", "highway", 3.0, 1)):
+            offset = float(rng.uniform(-REALCAR_YAW_OFFSET_DPS, REALCAR_YAW_OFFSET_DPS))
+            add(car, split, family, minutes, k, sensor_errors={"yaw_offset_radps": round(math.radians(offset), 6)})
 
 
 def _small_recipe() -> dict:

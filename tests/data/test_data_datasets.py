@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -82,7 +83,14 @@ def test_recipes():
     drives = bench["drives"]
     snow = [d for d in drives if d["role"] == "snow"]
     assert all(0.2 <= d["mu"] <= 0.5 and d["family"] == "snow" for d in snow)
-    assert {d["family"] for d in drives if d["role"] == "dry"} == {"longitudinal", "lateral", "mixed"}
+    assert {d["family"] for d in drives if d["role"] == "dry"} == {"longitudinal", "lateral", "mixed", "highway"}
+    # the real-car drives: per fleet car an uncalibrated yaw offset within 0.6 deg/s on two training drives (one
+    # that never stops) and a validation drive, so that the shipped model is trained and chosen on them too
+    realcar = [d for d in drives if "sensor_errors" in d]
+    assert len(realcar) == 15 and {d["split"] for d in realcar} == {"train", "val"}
+    assert all(abs(d["sensor_errors"]["yaw_offset_radps"]) <= math.radians(0.6) for d in realcar)
+    assert max(abs(d["sensor_errors"]["yaw_offset_radps"]) for d in realcar) > math.radians(0.3)
+    assert {d["family"] for d in realcar if d["split"] == "val"} == {"highway"}
     # a fleet of >= 5 cars and one held out; every drive in one split (no drive shared by train and test)
     fleet = {d["vehicle"] for d in drives} - set(bench["heldout"])
     assert len(fleet) >= 5 and len(bench["heldout"]) == 1 and all("split" in d for d in drives)
