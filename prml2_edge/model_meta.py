@@ -58,6 +58,8 @@ class ModelMetadata:
     guard: dict = field(default_factory=guard_limits)
     schema_hash: str = schema.SCHEMA_HASH
     output_rows: int | None = None  # decoder steps the graph returns, the newest ones (None: all L - H)
+    # the model's slow error measured on validation (evaluation/error_model.py): {"var_inflation": [5], ...}
+    error_model: dict | None = None
 
     @property
     def rows(self) -> int:

@@ -28,7 +28,10 @@ Every variant runs on the edge install (onnxruntime only).
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
+
+from prml2_edge import schema
 
 HELP = "Export a trained checkpoint to ONNX for the edge runtime."
 NEEDS: tuple[tuple[str, str], ...] = (("torch", "train"), ("onnx", "train"))
@@ -54,6 +57,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rows", default="1", metavar="N|all",
                         help="decoder steps the graph returns, the newest ones: 1 (default; all the streaming "
                              "runtime uses, and the cheapest graph) or 'all' (every one of the L - H)")
+    parser.add_argument("--no-error-model", action="store_true",
+                        help="do not measure the model's slow error on --data's validation split (by default the "
+                             "omega_z variance inflation the calibrated filter applies is measured and stored)")
     parser.add_argument("--parity-windows", type=int, default=100, metavar="N",
                         help="windows for the torch/onnxruntime parity check (default 100, at least 100)")
 
@@ -110,6 +116,8 @@ def run(args: argparse.Namespace) -> int:
     export_onnx(model, meta, fp32_path, rows=rows)
     windows, z_dec = _windows(model, args.data, args.parity_windows)
     _check_parity(model, meta, fp32_path, windows, rows)
+    if args.data and not args.no_error_model:
+        _fit_error_model(fp32_path, args.data)
     source = fp32_path  # what --int8 quantises: the fp32 graph, or the fused one with --optimize
     if args.optimize:
         source = _optimize(fp32_path, out.with_name(out.stem + ".opt.onnx") if args.int8 else out, windows)
@@ -117,6 +125,31 @@ def run(args: argparse.Namespace) -> int:
         _quantize(args, meta, fp32_path, source, out, windows, z_dec)
     read_metadata(out).check_schema(str(out))
     return 0
+
+
+def _fit_error_model(path: Path, data_dir: str) -> None:
+    """Measure the exported model's slow error on the validation split and store it in its metadata
+    (:mod:`prml2_edge.evaluation.error_model`); a split too short for it gets one line, and no entry."""
+    import onnx
+
+    from prml2_edge.data.datasets import load_dataset
+    from prml2_edge.evaluation import error_model
+    from prml2_edge.evaluation.protocol import forget_model
+    from prml2_edge.training.export_onnx import read_metadata, set_metadata
+
+    try:
+        entry = error_model.measure(str(path), load_dataset(data_dir))
+    except ValueError as exc:
+        print(f"error model: not measured ({exc}); the calibrated filter takes the model's variances as they are")
+        return
+    finally:
+        forget_model(str(path))
+    proto = onnx.load(str(path))
+    set_metadata(proto, replace(read_metadata(path), error_model=entry))
+    onnx.save(proto, str(path))
+    names = ", ".join(f"{n} x{v:g}" for n, v in zip(schema.STATE_NAMES, entry["var_inflation"], strict=True))
+    print(f"error model ({entry['window_s']:g} s means, {entry['source']}): variance inflation {names}; "
+          "the calibrated filter applies omega_z's")
 
 
 def _check_options(args: argparse.Namespace) -> Path:
@@ -145,7 +178,6 @@ def _load_model(checkpoint: str):
     from prml2_edge.training.export_onnx import metadata_for, read_metadata
 
     if checkpoint.endswith(".onnx"):  # re-export an exported model (e.g. as a newest-row streaming graph)
-        from dataclasses import replace
 
         from prml2_edge import __version__
         from prml2_edge.training.export_onnx import model_from_onnx

@@ -110,6 +110,7 @@ class WindowResult(DeadReckoningErrors):
     model_steps: int = 0
     mahal2: np.ndarray | None = None  # (n,) squared Mahalanobis distance of the 2D position error
     cal: np.ndarray | None = None  # (3,) calibration states at the outage start (NaN when off)
+    z_var: np.ndarray | None = None  # (n, 5) the model's variance for the consumed z (NaN where none)
 
 
 def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: int = schema.WINDOW_LEN,
@@ -190,6 +191,11 @@ def _onnx(path: str):
     return _ONNX_CACHE[path]
 
 
+def forget_model(path: str) -> None:
+    """Drop the cached session of ``path`` (its file was rewritten)."""
+    _ONNX_CACHE.pop(str(path), None)
+
+
 def build_model(spec: ModelSpec, bias: StandstillBias | None = None):
     """The runtime model of ``spec`` (an :class:`OnnxModel`, :class:`OsdModel` or a wrapper)."""
     from prml2_edge.evaluation.models import ConstantVarianceModel, OsdModel
@@ -227,6 +233,26 @@ def _start_state(task: WindowTask) -> np.ndarray:
     return x0
 
 
+def restore_standstill_calibration(loc, bias: StandstillBias) -> bool:
+    """Start the calibrated filter from the yaw-rate offset the OSD baseline uses, when it has one.
+
+    The OSD baseline subtracts the standstill bias of the drive before the window (else of the whole
+    drive); the calibrated filter starting from the prior would know less than the baseline it is
+    compared with. A car keeps what a standstill taught it in its calibration file
+    (:mod:`~prml2_edge.runtime.calibration`), so the filter starts from that offset with the file's
+    restore floor as its uncertainty, the wheel scale and the model bias from their priors. True when restored.
+    """
+    from prml2_edge.evaluation.osd import MIN_STANDSTILL_SAMPLES
+    from prml2_edge.runtime.calibration import RESTORE_STD_FLOOR
+
+    if bias.n_samples < MIN_STANDSTILL_SAMPLES:
+        return False
+    cfg = loc.config
+    std = np.array([RESTORE_STD_FLOOR[0], cfg.cal_wheel_scale_prior_std, cfg.cal_model_bias_std_radps])
+    loc.restore_calibration(np.array([bias.yaw_rate_radps, 0.0, 0.0]), np.diag(std**2))
+    return True
+
+
 def run_window(spec: ModelSpec, task: WindowTask, stride: int = 1) -> WindowResult:
     """Dead-reckon ``task`` with ``spec`` through :meth:`StreamingLocalizer.run_arrays`.
 
@@ -239,6 +265,8 @@ def run_window(spec: ModelSpec, task: WindowTask, stride: int = 1) -> WindowResu
     model = RecordingModel(build_model(spec, task.bias))
     loc = StreamingLocalizer(model, _localizer_config(spec, task, stride), process_noise=process_noise(model,
                                                                                                       spec.q_scale))
+    if spec.calibration:
+        restore_standstill_calibration(loc, task.bias)
     if not spec.guard:
         loc.a_max_mps2 = NO_GUARD_A_MAX_MPS2  # ablation: no friction-circle bound (speed/yaw-rate bounds stay)
     traj = loc.run_arrays(task.onboard, _start_state(task), start_index=task.history, gnss=simulated_fixes(task))
@@ -250,6 +278,7 @@ def run_window(spec: ModelSpec, task: WindowTask, stride: int = 1) -> WindowResu
     mahal2 = mahalanobis2(d, traj.pos_cov[h:])
     # model outputs the EKF consumed: call i is the window ending at row history + i * stride (rows all valid)
     z = np.full((len(pose), schema.NUM_STATES), np.nan)
+    z_var = z.copy()
     if model.records:
         idx = np.array([r[0] for r in model.records]) * stride - task.preroll
         mean = np.array([r[1] for r in model.records])
@@ -258,12 +287,13 @@ def run_window(spec: ModelSpec, task: WindowTask, stride: int = 1) -> WindowResu
             mean = physics_guard(mean, var, schema.accel_limit_mps2(task.mu))[0]
         ok = (idx >= 0) & (idx < len(pose))
         z[idx[ok]] = mean[ok]
+        z_var[idx[ok]] = var[ok]
         if spec.kind == "osd":
             from prml2_edge.evaluation.models import OSD_MISSING
 
             z[:, list(OSD_MISSING)] = np.nan
     return WindowResult(spec.name, task.key, task.split, pose, pos_err, yaw_err, task.distance_m, z,
-                        int(traj.guard_fired[h:].sum()), int(traj.model_used[h:].sum()), mahal2, traj.cal[h])
+                        int(traj.guard_fired[h:].sum()), int(traj.model_used[h:].sum()), mahal2, traj.cal[h], z_var)
 
 
 def _run_pair(args: tuple[ModelSpec, WindowTask, int]) -> WindowResult:

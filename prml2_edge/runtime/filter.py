@@ -68,6 +68,7 @@ class PoseFilter:
         self.dt_s = float(dt_s)
         # a restored calibration (cal (3,), cov (3, 3)) that every start begins from; None: the prior
         self.calibration0: tuple[np.ndarray, np.ndarray] | None = None
+        self.omega_var_inflation = 1.0  # on the model's omega_z variance when the raw cues are fused (localizer.py)
         self.reset()
 
     def reset(self) -> None:
@@ -139,7 +140,11 @@ class PoseFilter:
         # parked, the zero-velocity update replaces the model: its omega_z at rest is not its error while driving,
         # and the yaw-rate offset it shares with the CAN yaw rate would learn the wrong value
         skip_model = still and self.config.standstill_skips_model
-        ekf_status = self.ekf.step(None if skip_model else est.z, None if skip_model else est.z_var)
+        z_var = est.z_var
+        if self.calibrated and z_var is not None and self.omega_var_inflation != 1.0:
+            z_var = z_var.copy()
+            z_var[schema.Z.OMEGA_Z] *= self.omega_var_inflation
+        ekf_status = self.ekf.step(None if skip_model else est.z, None if skip_model else z_var)
         model_used = ekf_status is StepStatus.SUCCESS
         cues = standstill = False
         if self.calibrated:

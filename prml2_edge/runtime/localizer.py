@@ -92,6 +92,10 @@ class LocalizerConfig:
     cal_wheel_scale_psd: float = CalibrationNoise.wheel_scale_psd_ps
     cal_model_bias_std_radps: float = CalibrationNoise.model_bias_std_radps  # the model's omega_z error: Gauss-Markov
     cal_model_bias_tau_s: float = CalibrationNoise.model_bias_tau_s
+    # With the raw cues: the model's omega_z variance times this (its errors are smooth over seconds, the EKF takes
+    # every step's as new; evaluation/error_model.py). None: the model's metadata (error_model, measured on the
+    # validation split at export), else 1.
+    model_omega_var_inflation: float | None = None
 
     def __post_init__(self) -> None:
         if self.stride < 1:
@@ -200,6 +204,19 @@ class Trajectory:
         return out
 
 
+def omega_var_inflation(model: Model, config: LocalizerConfig) -> float:
+    """The factor on the model's omega_z variance next to the raw cues: the config's, else the model's metadata
+    (``error_model.var_inflation``), else 1."""
+    if config.model_omega_var_inflation is not None:
+        value = float(config.model_omega_var_inflation)
+    else:
+        error_model = getattr(getattr(model, "metadata", None), "error_model", None) or {}
+        value = float((error_model.get("var_inflation") or [1.0] * schema.NUM_STATES)[schema.Z.OMEGA_Z])
+    if not (math.isfinite(value) and value >= 1.0):
+        raise ValueError(f"model omega_z variance inflation must be >= 1, got {value!r}")
+    return value
+
+
 class StreamingLocalizer:
     """Estimator (window -> model -> physics guard) then filter (EKF, cues, GNSS), one 50 Hz row per :meth:`step`.
 
@@ -230,6 +247,7 @@ class StreamingLocalizer:
         cfg = self.config
         self.estimator = Estimator(model, cfg.stride, cfg.max_invalid_fraction, schema.accel_limit_mps2(cfg.mu))
         self.filter = PoseFilter(cfg, process_noise, initial_pose, self.dt_s)
+        self.filter.omega_var_inflation = omega_var_inflation(model, cfg)
         self.reset()
 
     # the stages' parts that callers read or set (evaluation, the pipeline's summary)

@@ -1,0 +1,116 @@
+"""The model's slow error: the variance inflation measured on validation, and what the filter does with it."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from prml2_edge import schema
+from prml2_edge.evaluation.error_model import consistency, fit_inflation, mean_error_ratio
+from prml2_edge.evaluation.models import OsdModel
+from prml2_edge.evaluation.osd import StandstillBias
+from prml2_edge.evaluation.protocol import restore_standstill_calibration
+from prml2_edge.runtime.localizer import LocalizerConfig, StreamingLocalizer, omega_var_inflation
+from prml2_edge.schema import EkfState, Z
+
+DT = schema.DT_S
+
+
+def _ar1(rng, n: int, tau_s: float, std: float) -> np.ndarray:
+    """A first-order Gauss-Markov sequence with correlation time ``tau_s`` and stationary ``std``."""
+    a = math.exp(-DT / tau_s)
+    e = np.empty(n)
+    e[0] = rng.normal(0.0, std)
+    for i in range(1, n):
+        e[i] = a * e[i - 1] + rng.normal(0.0, std * math.sqrt(1.0 - a * a))
+    return e
+
+
+def test_white_errors_as_large_as_stated_give_one_at_every_length():
+    rng = np.random.default_rng(0)
+    errs = [rng.normal(0.0, 0.2, (3000, 2)) for _ in range(8)]
+    var = [np.full((3000, 2), 0.04) for _ in range(8)]
+    for t, ratio in consistency(errs, var, (0.02, 1.0, 5.0)).items():
+        assert np.allclose(ratio, 1.0, atol=0.25 if t >= 1.0 else 0.05), (t, ratio)
+
+
+def test_smooth_errors_need_the_inflation_a_gauss_markov_error_predicts():
+    """tau = 1 s at 50 Hz: a 5 s mean of N = 250 steps has the variance of about N / (5 * ... ) white ones;
+    for tau << T the inflation tends to 2 tau / dt = 100."""
+    rng = np.random.default_rng(1)
+    errs = [_ar1(rng, 3000, 1.0, 0.1)[:, None] for _ in range(20)]
+    var = [np.full((3000, 1), 0.01) for _ in range(20)]
+    ratio, stretches = mean_error_ratio(errs, var, 5.0)
+    x = 5.0 / 1.0
+    expected = (2.0 * 1.0 / DT) * (1.0 - (1.0 - math.exp(-x)) / x)  # N * var(T-mean) / sigma^2 for an AR(1)
+    assert stretches == 20 * 12 and 0.7 * expected < ratio[0] < 1.3 * expected, (ratio, expected)
+
+
+def test_fit_floors_at_one_skips_missing_rows_and_refuses_too_little():
+    rng = np.random.default_rng(2)
+    e = rng.normal(0.0, 0.01, (2000, 5))
+    e[::7] = np.nan  # steps without a model output
+    entry = fit_inflation([e], [np.full((2000, 5), 1.0)], source="unit test")
+    assert entry["var_inflation"] == [1.0] * 5 and entry["window_s"] == 5.0 and entry["source"] == "unit test"
+    with pytest.raises(ValueError, match="need at least 4"):
+        fit_inflation([e[:600]], [np.ones((600, 5))])
+
+
+class _SlowYawErrorModel(OsdModel):
+    """The OSD baseline's z with ``error`` (n,) [rad/s] added to omega_z call by call and a confident variance:
+    a model whose yaw-rate error is slow and far larger than it says."""
+
+    def __init__(self, error: np.ndarray, inflation: float | None) -> None:
+        var = np.array([0.01, 0.01, 1.0, 0.05, math.radians(0.1) ** 2])
+        super().__init__(var, StandstillBias())
+        self.error, self.calls = error, 0
+        self.metadata = SimpleNamespace(ekf_process_noise=None, error_model=None if inflation is None else {
+            "var_inflation": [1.0, 1.0, 1.0, 1.0, inflation]})
+
+    def step(self, window):
+        status = super().step(window)
+        self.mean[:, Z.OMEGA_Z] += self.error[min(self.calls, len(self.error) - 1)]
+        self.calls += 1
+        return status
+
+
+def test_the_calibrated_filter_weighs_the_model_against_the_yaw_rate_cue_by_the_inflation():
+    """Driving straight with a fine CAN yaw rate reading 0 while the model says 1 deg/s at 0.1 deg/s: taken at
+    its word the model still pulls the filter's omega_z off after 2 s (its bias state takes most of it); with a
+    200-fold inflation the cue holds omega_z five times closer."""
+    n = schema.WINDOW_LEN + 100  # a window of history, then 2 s
+    onboard = np.zeros((n, schema.NUM_SIGNALS))
+    onboard[:, list(schema.WHEEL_SPEED_INDICES)] = 10.0
+    onboard[:, schema.SIGNAL_BY_NAME["speedometer_mps"].index] = 10.0
+    x0 = np.zeros(EkfState.DIM)
+    x0[EkfState.VEL.start] = 10.0
+    cfg = LocalizerConfig(yaw_cue_resolution_radps=math.radians(0.01))
+
+    def omega_dps(inflation: float | None) -> float:
+        model = _SlowYawErrorModel(np.full(n, math.radians(1.0)), inflation)
+        traj = StreamingLocalizer(model, cfg).run_arrays(onboard, x0, start_index=schema.WINDOW_LEN - 1)
+        return math.degrees(float(traj.x[-1, EkfState.OMEGA_Z.start]))
+
+    trusted, inflated = omega_dps(None), omega_dps(200.0)
+    assert trusted > 0.01 and inflated < 0.2 * trusted, (trusted, inflated)
+
+
+def test_the_inflation_comes_from_the_config_else_the_metadata_else_one():
+    measured = _SlowYawErrorModel(np.zeros(1), 130.0)
+    assert omega_var_inflation(measured, LocalizerConfig()) == 130.0
+    assert omega_var_inflation(measured, LocalizerConfig(model_omega_var_inflation=3.0)) == 3.0
+    assert omega_var_inflation(_SlowYawErrorModel(np.zeros(1), None), LocalizerConfig()) == 1.0
+    with pytest.raises(ValueError, match=">= 1"):
+        omega_var_inflation(measured, LocalizerConfig(model_omega_var_inflation=0.5))
+
+
+def test_evaluation_starts_the_calibrated_filter_from_the_baselines_standstill_offset():
+    loc = StreamingLocalizer(_SlowYawErrorModel(np.zeros(1), None), LocalizerConfig())
+    assert not restore_standstill_calibration(loc, StandstillBias(n_samples=3))
+    assert loc.filter.calibration0 is None
+    assert restore_standstill_calibration(loc, StandstillBias(0.1, math.radians(0.3), 400))
+    cal, cov = loc.filter.calibration0
+    assert cal[0] == pytest.approx(math.radians(0.3)) and math.sqrt(cov[0, 0]) == pytest.approx(math.radians(0.05))
