@@ -147,6 +147,16 @@ def robustness(doc: dict) -> list[str]:
 
 
 # block name -> (JSON files it reads, renderer taking one document per file, None where the file is missing)
+def cue_consistency(doc: dict) -> list[str]:
+    import cue_consistency as cc
+    return cc.markdown(doc)
+
+
+def filter_ablation(doc: dict) -> list[str]:
+    import filter_ablation as fa
+    return fa.markdown(doc)
+
+
 RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., list[str]]]] = {
     "latency": (("latency",), latency),
     "throughput": (("replay", "training"), throughput),
@@ -158,6 +168,8 @@ RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., list[str]]]] = {
     "sim_realism": (("sim_realism",), sim_realism),
     "sensor_profile": (("sensor_profile",), sensor_profile),
     "robustness": (("robustness",), robustness),
+    "cue_consistency": (("cue_consistency",), cue_consistency),
+    "filter_ablation": (("filter_ablation",), filter_ablation),
 }
 
 

@@ -108,3 +108,25 @@ class RecordingModel:
             self.records.append((self.calls, self.inner.mean[-1].copy(), self.inner.var[-1].copy()))
         self.calls += 1
         return status
+
+
+class ReplayModel:
+    """Gives back the outputs a :class:`RecordingModel` recorded, call by call: the model's z never depends on the
+    filter, so filter variants of one window can share one run of the model (``benchmarks/filter_ablation.py``).
+    A call that was not recorded (the model failed, or a row was invalid) is an invalid output again."""
+
+    def __init__(self, records: list[tuple[int, np.ndarray, np.ndarray]], metadata=None,
+                 window_len: int = schema.WINDOW_LEN, decoder_len: int = schema.DECODER_LEN) -> None:
+        self.window_len, self.decoder_len, self.metadata = int(window_len), int(decoder_len), metadata
+        self._records = {int(c): (m, v) for c, m, v in records}
+        self.calls = 0
+        self.mean = np.zeros((1, schema.NUM_STATES))
+        self.var = np.ones((1, schema.NUM_STATES))
+
+    def step(self, window: np.ndarray) -> InferenceStatus:
+        rec = self._records.get(self.calls)
+        self.calls += 1
+        if rec is None:
+            return InferenceStatus.INVALID_OUTPUT
+        self.mean[0], self.var[0] = rec
+        return InferenceStatus.SUCCESS

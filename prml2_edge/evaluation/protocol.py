@@ -50,6 +50,9 @@ class ModelSpec:
     const_var: tuple[float, ...] | None = None
     q_scale: float = 1.0
     calibration: bool = False  # the filter's calibration states and raw cues (runtime/filter.py)
+    # with calibration: start from the standstill offset the OSD baseline uses (restore_standstill_calibration)
+    standstill_calibration: bool = True
+    filter: tuple[tuple[str, object], ...] = ()  # LocalizerConfig fields to override, (name, value) pairs
 
     def __post_init__(self) -> None:
         if self.kind not in ("onnx", "osd"):
@@ -221,7 +224,7 @@ def _localizer_config(spec: ModelSpec, task: WindowTask, stride: int):
 
     return LocalizerConfig(stride=stride, mu=task.mu, fuse_gnss=bool(task.preroll), calibration=spec.calibration,
                            gnss_pos_std_m=GNSS_POS_STD_M, gnss_heading_std_deg=GNSS_HEADING_STD_DEG,
-                           gnss_heading_min_speed_mps=GNSS_HEADING_MIN_SPEED_MPS)
+                           gnss_heading_min_speed_mps=GNSS_HEADING_MIN_SPEED_MPS, **dict(spec.filter))
 
 
 def _start_state(task: WindowTask) -> np.ndarray:
@@ -253,19 +256,21 @@ def restore_standstill_calibration(loc, bias: StandstillBias) -> bool:
     return True
 
 
-def run_window(spec: ModelSpec, task: WindowTask, stride: int = 1) -> WindowResult:
+def run_window(spec: ModelSpec, task: WindowTask, stride: int = 1, model=None) -> WindowResult:
     """Dead-reckon ``task`` with ``spec`` through :meth:`StreamingLocalizer.run_arrays`.
 
     With a pre-roll (deployment protocol) the filter starts at the true pose ``preroll`` rows before the
     outage and fuses :func:`simulated_fixes` until it; everything reported is from the outage start on.
+    ``model``: use this model (e.g. a :class:`~prml2_edge.evaluation.models.ReplayModel` of recorded outputs)
+    instead of building ``spec``'s.
     """
     from prml2_edge.evaluation.models import RecordingModel
     from prml2_edge.runtime.localizer import StreamingLocalizer
 
-    model = RecordingModel(build_model(spec, task.bias))
+    model = RecordingModel(build_model(spec, task.bias) if model is None else model)
     loc = StreamingLocalizer(model, _localizer_config(spec, task, stride), process_noise=process_noise(model,
                                                                                                       spec.q_scale))
-    if spec.calibration:
+    if spec.calibration and spec.standstill_calibration:
         restore_standstill_calibration(loc, task.bias)
     if not spec.guard:
         loc.a_max_mps2 = NO_GUARD_A_MAX_MPS2  # ablation: no friction-circle bound (speed/yaw-rate bounds stay)

@@ -237,3 +237,26 @@ def test_per_vehicle_breakdown_says_on_which_car_a_model_helps(tmp_path):
     row = next(ln for ln in report.splitlines() if ln.startswith("| test | city_fwd | PRML2 |"))
     ratio = per["city_fwd"]["PRML2"]["rmse_mean_m"] / per["city_fwd"]["OSD-Baseline"]["rmse_mean_m"]
     assert f"| {ratio:.2f} |" in row
+
+
+def test_filter_variants_replay_the_models_outputs_exactly(tiny):
+    """A model's z does not depend on the filter: replaying the recorded outputs gives the pose the model gives,
+    and a filter override (a ModelSpec's ``filter``) reaches the localiser."""
+    from dataclasses import replace
+
+    from prml2_edge.evaluation.models import RecordingModel, ReplayModel
+    from prml2_edge.evaluation.protocol import build_model
+
+    data, model = tiny
+    task = split_tasks(load_dataset(data), "test", WINDOW_S)[0]
+    spec = ModelSpec("kin", "onnx", str(model), calibration=True)
+    rec = RecordingModel(build_model(spec, task.bias))
+    direct = run_window(spec, task, model=rec)
+    replayed = run_window(spec, task, model=ReplayModel(rec.records, rec.metadata))
+    np.testing.assert_array_equal(replayed.pose, direct.pose)
+    assert replayed.z_var is not None and np.isfinite(replayed.z_var[1:]).all()
+    no_cues = run_window(replace(spec, filter=(("cue_min_speed_mps", 1e9), ("substitute_yaw_cue", False))), task,
+                         model=ReplayModel(rec.records, rec.metadata))
+    assert not np.array_equal(no_cues.pose, direct.pose)
+    silent = run_window(spec, task, model=ReplayModel([], rec.metadata))  # nothing recorded: no model step
+    assert silent.model_steps == 0

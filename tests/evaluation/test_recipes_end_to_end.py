@@ -15,6 +15,7 @@ import pytest
 from prml2_edge.cli.main import main
 from prml2_edge.cli.simulate import add_arguments
 from prml2_edge.data.datasets import FLEET, HELDOUT, RECIPES, generate_dataset, resolve_recipe
+from prml2_edge.training.export_onnx import read_metadata
 
 pytest.importorskip("torch")
 
@@ -65,7 +66,14 @@ def test_recipe_through_train_export_and_evaluate(recipe, tmp_path, capsys):
     if recipe == "small":
         assert json.loads((run / "summary.json").read_text())["val"]["dead_reckoning_60s"]["n_windows"] == 1
     onnx = tmp_path / "m.onnx"
-    assert main(["export", "--checkpoint", str(run / "best.pt"), "--out", str(onnx)]) == 0
+    assert main(["export", "--checkpoint", str(run / "best.pt"), "--out", str(onnx), "--data", str(data)]) == 0
+    # the model's slow error measured on the 60 s validation window (small), or said not measured (brief: none)
+    error_model = read_metadata(onnx).error_model
+    assert (error_model is not None) == (recipe == "small")
+    if error_model is not None:
+        assert len(error_model["var_inflation"]) == 5 and min(error_model["var_inflation"]) >= 1.0
+    else:
+        assert "error model: not measured" in capsys.readouterr().out
     rep = tmp_path / "rep"
     args, model = SETTINGS[recipe]
     assert main(["evaluate", "--data", str(data), *(a.format(onnx=onnx) for a in args), "--out", str(rep),

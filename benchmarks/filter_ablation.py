@@ -1,0 +1,179 @@
+"""Ablation of the runtime filter's design choices, validation and test in one run (issue 26).
+
+The model runs once per 60 s window (``prml2_edge.evaluation.protocol.run_window``, recording its outputs);
+every filter variant then replays those outputs (``ReplayModel``: the model's z never depends on the filter),
+so each row differs from the next by one choice only, on the same windows. Variants:
+
+* ``paper filter``: the paper's 8-state EKF on the model's z (``calibration off``);
+* ``+cal, prior start``: the calibrating filter (raw yaw-rate and wheel cues, calibration states) starting from
+  its prior, with the model's variance taken at its word: what the runtime was before;
+* ``+ standstill offset``: the calibrating filter starts from the standstill offset the OSD baseline subtracts
+  (``restore_standstill_calibration``; a car has it in its calibration file);
+* ``+ slow-error inflation``: the model's omega_z variance times its measured inflation
+  (``evaluation/error_model.py``, from the model's metadata) instead;
+* ``both (the runtime's default)``.
+
+The OSD baseline is tuned on the validation split (``tune_osd``) and is the reference of every ratio and of the
+paired intervals (``paired_comparison``: mean of variant - OSD RMSE per window, bootstrap 95 %). Protocols: the
+paper's (from the true pose, no GNSS) and the deployment protocol (30 s of GNSS first).
+
+Usage::
+
+    .venv/bin/python benchmarks/filter_ablation.py --data data/bench --model export/default/prml2_edge.onnx \\
+        [--splits val test] [--jobs 2] [--max-windows N]
+    .venv/bin/python benchmarks/render_tables.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from prml2_edge.bench.machine import machine_info
+from prml2_edge.data.datasets import load_dataset
+from prml2_edge.evaluation.metrics import coverage, dr_summary, paired_comparison
+from prml2_edge.evaluation.models import RecordingModel, ReplayModel
+from prml2_edge.evaluation.protocol import (
+    DEPLOYMENT_PREROLL_S,
+    ModelSpec,
+    build_model,
+    run_all,
+    run_window,
+    split_tasks,
+    tune_osd,
+)
+from prml2_edge.progress import Progress
+
+HERE = Path(__file__).resolve().parent
+OUT = HERE / "results" / "filter_ablation.json"
+OSD = "OSD-Baseline"
+NO_INFLATION = (("model_omega_var_inflation", 1.0),)
+
+
+def variants(model: str) -> dict[str, ModelSpec]:
+    base = ModelSpec("PRML2", "onnx", model)
+    cal = replace(base, calibration=True)
+    return {"paper filter": base,
+            "+cal, prior start": replace(cal, standstill_calibration=False, filter=NO_INFLATION),
+            "+ standstill offset": replace(cal, filter=NO_INFLATION),
+            "+ slow-error inflation": replace(cal, standstill_calibration=False),
+            "both (the runtime's default)": cal}
+
+
+def _one_task(args):
+    """Worker: the model once on ``task``, then every variant on its recorded outputs."""
+    specs, task = args
+    (first_name, first), *rest = specs.items()
+    rec = RecordingModel(build_model(first, task.bias))
+    out = {first_name: run_window(first, task, model=rec)}
+    for name, spec in rest:
+        out[name] = run_window(spec, task, model=ReplayModel(rec.records, rec.metadata))
+    return out
+
+
+def run_split(tasks, specs: dict[str, ModelSpec], jobs: int, label: str) -> dict[str, list]:
+    results: dict[str, list] = {name: [] for name in specs}
+    bar = Progress(len(tasks), desc=f"ablation {label}", unit="win")
+    pairs = [(specs, t) for t in tasks]
+    if jobs <= 1:
+        outs = map(_one_task, pairs)
+    else:
+        import multiprocessing as mp
+        pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("fork" if os.name == "posix" else "spawn"))
+        outs = pool.map(_one_task, pairs, chunksize=1)
+    for out in outs:
+        for name, res in out.items():
+            results[name].append(res)
+        bar.update()
+    bar.close()
+    return results
+
+
+def summarise(results: dict[str, list], osd: list) -> dict:
+    out = {}
+    ref = dr_summary(osd)["rmse_mean_m"]
+    for name, res in {OSD: osd, **results}.items():
+        s = dr_summary(res)
+        cov = coverage(res)
+        out[name] = {"rmse_mean_m": s["rmse_mean_m"], "drift_mean_pct": s["drift_mean_pct"], "n_windows": len(res),
+                     "ratio_to_osd": s["rmse_mean_m"] / ref, "coverage_pct": cov,
+                     "paired_vs_osd": None if name == OSD else paired_comparison(osd, res)}
+    return out
+
+
+def check_replay_is_exact(specs: dict[str, ModelSpec], task) -> float:
+    """Largest position difference [m] between the default variant on replayed outputs and on the model itself."""
+    name = "both (the runtime's default)"
+    replayed = _one_task(({name: specs[name]}, task))[name]
+    direct = run_window(specs[name], task)
+    return float(np.max(np.abs(replayed.pose - direct.pose)))
+
+
+def measure(args: argparse.Namespace) -> dict:
+    dataset = load_dataset(args.data)
+    specs = variants(args.model)
+    val = split_tasks(dataset, "val", max_windows=args.max_windows)
+    osd_spec = tune_osd(ModelSpec(OSD, "osd"), val, jobs=args.jobs)
+    doc = {"data": str(args.data), "model": str(args.model), "osd_q_scale": osd_spec.q_scale, "splits": {}}
+    for split in args.splits:
+        for protocol, pre in (("paper", 0.0), ("deployment", DEPLOYMENT_PREROLL_S)):
+            tasks = split_tasks(dataset, split, max_windows=args.max_windows, preroll_s=pre)
+            if not tasks:
+                continue
+            if "replay_exact_max_m" not in doc:
+                doc["replay_exact_max_m"] = check_replay_is_exact(specs, tasks[0])
+            osd = run_all([osd_spec], tasks, jobs=args.jobs)[OSD]
+            doc["splits"][f"{split} / {protocol}"] = summarise(run_split(tasks, specs, args.jobs, split), osd)
+    return doc
+
+
+def markdown(doc: dict) -> list[str]:
+    out = [f"60 s position RMSE [m] (× OSD), drift, 2σ / 3σ coverage; model `{Path(doc['model']).name}` on "
+           f"`{doc['data']}`. Paired: mean of (variant − OSD) RMSE per window with its bootstrap 95 % interval.", "",
+           "| split / protocol | filter | RMSE m (× OSD) | drift % | paired vs OSD m | 2σ / 3σ % | windows |",
+           "|---|---|---|---:|---|---|---:|"]
+    for key, rows in doc["splits"].items():
+        for name, r in rows.items():
+            p = r["paired_vs_osd"]
+            paired = "–" if p is None else (f"{p['rmse_diff_mean_m']:+.2f} [{p['rmse_diff_ci95_m'][0]:+.2f}, "
+                                             f"{p['rmse_diff_ci95_m'][1]:+.2f}]")
+            cov = r["coverage_pct"]
+            c = f"{cov['coverage_2sigma_pct']:.0f} / {cov['coverage_3sigma_pct']:.0f}" if cov else "–"
+            out.append(f"| {key} | {name} | {r['rmse_mean_m']:.2f} ({r['ratio_to_osd']:.2f}×) | "
+                       f"{r['drift_mean_pct']:.2f} | {paired} | {c} | {r['n_windows']} |")
+    out += ["", f"Replay check: the default filter on replayed outputs against the model itself, largest position "
+            f"difference {doc.get('replay_exact_max_m', float('nan')):.1e} m. OSD Q scale {doc['osd_q_scale']:g} "
+            f"(tuned on val). {doc['wall_s']:.0f} s."]
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", default=str(HERE.parent / "data" / "bench"))
+    p.add_argument("--model", default=str(HERE.parent / "export" / "default" / "prml2_edge.onnx"))
+    p.add_argument("--splits", nargs="+", default=["val", "test"])
+    p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--max-windows", type=int, default=None, help="at most N windows per drive segment")
+    p.add_argument("--out", default=str(OUT), help=f"result JSON (default {OUT.relative_to(HERE.parent)})")
+    args = p.parse_args(argv)
+    t0 = time.time()
+    doc = {"machine": machine_info(), **measure(args)}
+    doc["wall_s"] = time.time() - t0
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=1, default=float))
+    print("\n".join(markdown(doc)))
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
