@@ -31,6 +31,7 @@ from prml2_edge.bench.machine import machine_info
 from prml2_edge.data.datasets import load_dataset
 from prml2_edge.evaluation.error_model import consistency, model_errors
 from prml2_edge.evaluation.protocol import ModelSpec, run_all, split_tasks
+from prml2_edge.runtime.filter import yaw_cue_var
 from prml2_edge.runtime.localizer import LocalizerConfig
 
 HERE = Path(__file__).resolve().parent
@@ -47,7 +48,7 @@ def yaw_cue_errors(tasks, cfg: LocalizerConfig) -> tuple[list[np.ndarray], list[
         steps = np.abs(np.diff(yaw))
         steps = steps[steps > 0]
         res = float(np.percentile(steps, 10)) if len(steps) else cfg.yaw_cue_resolution_radps
-        var = cfg.yaw_cue_std_radps ** 2 + (cfg.yaw_cue_quant_gain * res) ** 2
+        var = yaw_cue_var(cfg, res)
         errs.append((yaw - t.bias.yaw_rate_radps - t.z_gt[:, schema.Z.OMEGA_Z])[:, None])
         vars_.append(np.full((len(yaw), 1), var))
     return errs, vars_

@@ -178,7 +178,6 @@ def _load_model(checkpoint: str):
     from prml2_edge.training.export_onnx import metadata_for, read_metadata
 
     if checkpoint.endswith(".onnx"):  # re-export an exported model (e.g. as a newest-row streaming graph)
-
         from prml2_edge import __version__
         from prml2_edge.training.export_onnx import model_from_onnx
 

@@ -46,6 +46,12 @@ _YAW, _OMEGA, _VX = EkfState.YAW.start, EkfState.OMEGA_Z.start, EkfState.VEL.sta
 _RESOLUTION_WINDOW = 200  # steps between distinct yaw-rate readings kept for the resolution estimate
 
 
+def yaw_cue_var(config, resolution_radps: float) -> float:
+    """The CAN yaw-rate cue's variance [rad^2/s^2]: white noise plus ``yaw_cue_quant_gain`` times the signal's
+    resolution ``resolution_radps``; ``config`` a :class:`~prml2_edge.runtime.localizer.LocalizerConfig`."""
+    return config.yaw_cue_std_radps ** 2 + (config.yaw_cue_quant_gain * resolution_radps) ** 2
+
+
 @dataclass(frozen=True)
 class FilterStep:
     """What the filter did at one step."""
@@ -212,8 +218,7 @@ class PoseFilter:
         return False
 
     def _yaw_var(self) -> float:
-        cfg = self.config
-        return cfg.yaw_cue_std_radps ** 2 + (cfg.yaw_cue_quant_gain * self.yaw_resolution_radps) ** 2
+        return yaw_cue_var(self.config, self.yaw_resolution_radps)
 
     def _track_resolution(self, yaw: float) -> None:
         """The yaw-rate signal's resolution from the steps between successive distinct readings."""
