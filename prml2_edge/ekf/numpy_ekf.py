@@ -142,6 +142,7 @@ class CalibrationNoise:
     wheel_scale_psd_ps: float = 1.7e-9
     model_bias_std_radps: float = 0.2 * schema.DEG_TO_RAD
     model_bias_tau_s: float = 5.0
+    model_offset_share: float = 1.0  # how much of the CAN yaw-rate offset the model's omega_z carries
 
     def decay(self, dt_s: float = schema.DT_S) -> float:
         """``exp(-dt / tau)`` of the model bias over ``dt_s`` [s]."""
@@ -394,13 +395,16 @@ def update_linear(
     return x_new, symmetrize(p_new)
 
 
-def model_measurement(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def model_measurement(x: np.ndarray, offset_share: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """``h(x)`` (5,) and its Jacobian ``H`` (5, 11) of the model's z in the calibrated layout.
 
     The model reads the same sensors as the raw cues, so it inherits their slow errors (measured on a
     drive it never saw with a -0.4 deg/s yaw offset and wheels 0.8 % fast: its omega_z was 0.24 deg/s
     low and its v_x 0.7 % high): ``v_x`` reads ``(1 + scale) v_x``, ``omega_z`` reads
-    ``omega_z + offset + model_bias``; ``v_y``, ``a_x``, ``a_y`` as the plain selection.
+    ``omega_z + offset_share * offset + model_bias``; ``v_y``, ``a_x``, ``a_y`` as the plain selection.
+    ``offset_share`` is how much of the CAN yaw-rate offset the model's omega_z carries (1: all of it, so the
+    model can never tell the filter the offset; 0: none, so the gyro-minus-model difference measures the offset
+    less the model's own slow error, :class:`CalibrationNoise`).
     """
     h = np.zeros((MEAS_DIM, FULL_DIM))
     h[np.arange(MEAS_DIM), _Z_IDX] = 1.0
@@ -408,15 +412,16 @@ def model_measurement(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     vx_row, w_row = schema.Z.V_X, schema.Z.OMEGA_Z
     h[vx_row, _VX] = 1.0 + x[_K_WHEEL]  # the scale is a known correction here (see cue_measurement)
     hx[vx_row] = (1.0 + x[_K_WHEEL]) * x[_VX]
-    h[w_row, _B_YAW] = h[w_row, _B_MODEL] = 1.0
-    hx[w_row] = x[_OMEGA] + x[_B_YAW] + x[_B_MODEL]
+    h[w_row, _B_YAW] = offset_share
+    h[w_row, _B_MODEL] = 1.0
+    hx[w_row] = x[_OMEGA] + offset_share * x[_B_YAW] + x[_B_MODEL]
     return hx, h
 
 
-def update_model_calibrated(x: np.ndarray, P: np.ndarray, z: np.ndarray,
-                            z_var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def update_model_calibrated(x: np.ndarray, P: np.ndarray, z: np.ndarray, z_var: np.ndarray,
+                            offset_share: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """The model's pseudo-measurement ``z`` (5,) in the calibrated layout (:func:`model_measurement`)."""
-    hx, h = model_measurement(x)
+    hx, h = model_measurement(x, offset_share)
     return update_linear(x, P, h, z - hx, z_var)
 
 
@@ -548,6 +553,7 @@ class Ekf:
         self.cal_std = cal_std or CalibrationStd()
         cal_noise = cal_noise or CalibrationNoise()
         self.model_bias_decay = cal_noise.decay(self.dt_s) if self.calibration else 1.0
+        self.model_offset_share = float(cal_noise.model_offset_share)
         q = default_process_noise(self.dt_s) if Q is None else np.array(Q, dtype=np.float64)
         if self.calibration:
             q = extend_calibrated(q, cal_noise.diagonal(self.dt_s))
@@ -613,7 +619,8 @@ class Ekf:
             if not valid:
                 return self._commit(x, p, StepStatus.INPUT_INVALID)
             try:
-                x, p = update_model_calibrated(x, p, zz, vv) if self.calibration else update(x, p, zz, vv)
+                x, p = (update_model_calibrated(x, p, zz, vv, self.model_offset_share) if self.calibration
+                        else update(x, p, zz, vv))
             except np.linalg.LinAlgError:
                 x = np.full(self.dim, np.nan)  # cannot happen for finite P; handled as a reset
             return self._commit(x, p, StepStatus.SUCCESS)

@@ -126,7 +126,8 @@ class PoseFilter:
         cfg = self.config
         self.ekf = Ekf(x0, P0, Q=self.process_noise, dt_s=self.dt_s, calibration=self.calibrated,
                        cal_noise=CalibrationNoise(cfg.cal_yaw_offset_psd, cfg.cal_wheel_scale_psd,
-                                                  cfg.cal_model_bias_std_radps, cfg.cal_model_bias_tau_s)
+                                                  cfg.cal_model_bias_std_radps, cfg.cal_model_bias_tau_s,
+                                                  cfg.model_offset_share)
                        if self.calibrated else None,
                        cal_std=CalibrationStd(cfg.cal_yaw_offset_prior_std_radps, cfg.cal_wheel_scale_prior_std,
                                               cfg.cal_model_bias_std_radps) if self.calibrated else None)

@@ -92,6 +92,7 @@ class LocalizerConfig:
     cal_wheel_scale_psd: float = CalibrationNoise.wheel_scale_psd_ps
     cal_model_bias_std_radps: float = CalibrationNoise.model_bias_std_radps  # the model's omega_z error: Gauss-Markov
     cal_model_bias_tau_s: float = CalibrationNoise.model_bias_tau_s
+    model_offset_share: float = CalibrationNoise.model_offset_share  # of the CAN yaw-rate offset, in the model's omega_z
     # With the raw cues: the model's omega_z variance times this (its errors are smooth over seconds, the EKF takes
     # every step's as new; evaluation/error_model.py). None: the model's metadata (error_model, measured on the
     # validation split at export), else 1.
