@@ -4,14 +4,13 @@ A seeded simulated drive (GNSS fixes for its first ``--gnss-s`` seconds) is enco
 shipped ONNX model runs once over it and its outputs are recorded; then fresh pipelines replay those
 outputs call by call (``evaluation.models.ReplayModel``: the model costs nothing), so everything measured
 is decode, assemble, plausibility, window, guard, filter and sinks, on exactly the frames and model
-outputs of the real run. Three views:
+outputs of the real run. Two views:
 
-* per-stage p50/p99 from the pipeline's own :class:`~prml2_edge.runtime.latency.LatencyRecorder` (best of
-  ``--repeat`` runs by p50 sum; decode and assemble are per frame, the others per row) and the per-row
-  overhead ``end_to_end - infer`` (what a row's result waits for outside the model);
-* ``--profile N``: cProfile's top ``N`` functions by own time, and calls per row;
-* ``--rows-only``: no timing output, for ``valgrind --tool=callgrind`` instruction counts (run it with
-  ``--seconds`` 0 too and subtract: imports and set-up cost the same in both).
+* per row with an inference, p50/p99 of each stage from the pipeline's own
+  :class:`~prml2_edge.runtime.latency.LatencyRecorder` (decode and assemble summed over the row's frames) and of
+  their sum (:func:`prml2_edge.bench.latency.measure_steps`), best of ``--repeat`` replays by that sum's p50, and
+  the per-row overhead ``end_to_end - infer`` (what a row's result waits for outside the model);
+* ``--profile N``: cProfile's top ``N`` functions by own time, and calls per row (load-independent).
 
 Usage::
 
@@ -99,15 +98,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--repeat", type=int, default=3, help="timed replays; the best (lowest p50 sum) is reported")
     ap.add_argument("--profile", type=int, default=0, metavar="N", help="print cProfile's top N functions")
-    ap.add_argument("--rows-only", action="store_true", help="replay once, print nothing timed (callgrind)")
     ap.add_argument("--json", default=None, help="write the figures here")
     args = ap.parse_args(argv)
-    frames, pose, records, onnx = drive_and_records(args.seconds, args.seed, args.gnss_s) if args.seconds > 0 \
-        else ([], None, [], None)
-    if args.rows_only:
-        if frames:
-            print(f"{run(frames, records, onnx, pose)[0].rows} rows")
-        return 0
+    frames, pose, records, onnx = drive_and_records(args.seconds, args.seed, args.gnss_s)
     load0, t0 = load_average(), time.time()
     print(f"load average at start {load0}", flush=True)
     best = None
