@@ -351,13 +351,12 @@ def main(argv: list[str] | None = None) -> int:
     if stream is not None:
         for r in runs:
             r["x_vs_streaming"] = r["x_realtime"] / stream["x_realtime"]
-    load_end = load_average()
-    load = load_label(machine.get("load_average"), load_end)
-    print(f"load average at end {load_end}: {load}")
+    end = _load_fields(machine.get("load_average"))
+    print(f"load average at end {end['load_average'][1]}: {end['load']}")
     doc = {
         "benchmark": "replay",
         "started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(t_start)),
-        "machine": machine, "load_average_end": load_end, "load": load,
+        "machine": machine, "load_average_end": end["load_average"][1], "load": end["load"],
         "model": args.model, "model_source": bm["source"], "torch_imported": "torch" in sys.modules,
         "drive_minutes": args.minutes, "data_s": duration_s, "log": str(log_path), "runs": runs,
         "batch_calls": batch,
