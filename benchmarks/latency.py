@@ -30,7 +30,7 @@ import torch
 from prml2_edge import schema
 from prml2_edge.bench.flops import gemm_shapes, inference_flops
 from prml2_edge.bench.latency import StepSamples, build_pipeline, measure_steps, open_session_model, split_frames
-from prml2_edge.bench.machine import gemm_rate, load_average, machine_info
+from prml2_edge.bench.machine import gemm_rate, load_average, load_label, machine_info
 from prml2_edge.bench.replay_input import simulated_frames
 from prml2_edge.runtime.latency import DEADLINE_MS, PAPER_INFER_MS
 
@@ -86,7 +86,7 @@ def run_model(bm: bench_models.BenchModel, threads: int, seconds: float, warmup_
             "deadline_misses": int(np.count_nonzero(np.asarray(s.e2e_ms) > DEADLINE_MS)),
             "flops": flops, "model_gflops_per_s": flops / (p50 * 1e6),
             "rows_per_s": s.rows / s.wall_s if s.wall_s > 0 else None,
-            "load_average": [load_before, load_after],
+            "load_average": [load_before, load_after], "load": load_label(load_before, load_after),
         })
     return out
 
@@ -130,6 +130,7 @@ def main(argv: list[str] | None = None) -> int:
 
     t_start = time.time()
     machine = machine_info(with_torch=True)
+    print(f"[latency] load average at start {machine['load_average']}", file=sys.stderr, flush=True)
     models = [m.strip() for m in args.models.split(",") if m.strip()]
     threads = [int(t) for t in args.threads.split(",")]
     configs, model_info, gemm, rmse = [], {}, {}, {}
@@ -147,6 +148,8 @@ def main(argv: list[str] | None = None) -> int:
             if key not in gemm:  # same run, between the models
                 gemm[key] = gemm_rate(gemm_shapes(bench_models.paper_config()), threads=n)
         rmse[name] = int8_rmse(bm)
+    load_end = load_average()
+    print(f"[latency] load average at end {load_end}", file=sys.stderr, flush=True)
     doc = {
         "benchmark": "latency",
         "started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(t_start)),
@@ -154,7 +157,8 @@ def main(argv: list[str] | None = None) -> int:
         "quick": args.quick,
         "settings": {k: v for k, v in vars(args).items() if k != "out"},
         "machine": machine,
-        "load_average_end": load_average(),
+        "load_average_end": load_end,
+        "load": load_label(machine["load_average"], load_end),
         "models": model_info,
         "configs": configs,
         "gemm": gemm,

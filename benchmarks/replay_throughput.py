@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from prml2_edge.bench.latency import build_pipeline, open_session_model
-from prml2_edge.bench.machine import load_average, machine_info
+from prml2_edge.bench.machine import load_average, load_label, machine_info
 from prml2_edge.bench.replay_input import simulate_log
 from prml2_edge.runtime.offline import run_offline
 from prml2_edge.runtime.pipeline import Pipeline, run_source
@@ -128,6 +128,12 @@ def z_rmse(sink: _ZSink, z_gt: np.ndarray) -> dict:
                                                        strict=True))}
 
 
+def _load_fields(load0: list[float] | None) -> dict:
+    """The 1-min load averages at a run's start and end, and "idle" or "loaded (load X -> Y)" from them."""
+    load1 = load_average()
+    return {"load_average": [load0, load1], "load": load_label(load0, load1)}
+
+
 def offline_once(log_path: Path, pose, duration_s: float, model_path: str, threads: int, workers: int,
                  rss_every: int, label: str) -> tuple[dict, _ZSink]:
     """One offline replay (``prml2 replay --batch``): throughput, time per stage, RSS."""
@@ -150,7 +156,7 @@ def offline_once(log_path: Path, pose, duration_s: float, model_path: str, threa
         "mode": label, "threads": threads, "workers": workers, "stride": 1, "frames_received": res.frames,
         "source_error": res.problem, "rows": summ["rows"], "inferences": summ["inferences"],
         "frames_balanced": summ["frames"]["balanced"], "wall_s": wall_s, "x_realtime": duration_s / wall_s,
-        "rows_per_s": summ["rows"] / wall_s, "per_row_ms": per_row, "load_average": [load0, load_average()],
+        "rows_per_s": summ["rows"] / wall_s, "per_row_ms": per_row, **_load_fields(load0),
         "model": pipeline.offline["model"], **cpu,
         "rss": {"before_mib": rss0, "start_mib": rss[0], "half_mib": half, "end_mib": rss[-1], "peak_mib": max(rss),
                 "workers_peak_mib": progress.children_peak_mib, "second_half_growth_mib": growth,
@@ -189,7 +195,7 @@ def replay_once(log_path: Path, pose, duration_s: float, model_path: str, thread
         "source_error": error,
         "rows": summ["rows"], "inferences": summ["inferences"], "frames_balanced": summ["frames"]["balanced"],
         "wall_s": wall_s, "x_realtime": duration_s / wall_s, "rows_per_s": summ["rows"] / wall_s,
-        "frames_per_s": received / wall_s, "per_row_ms": per_row, "load_average": [load0, load_average()],
+        "frames_per_s": received / wall_s, "per_row_ms": per_row, **_load_fields(load0),
         "latency": lat, **cpu,
         "rss": {"before_mib": rss0, "start_mib": rss[0], "half_mib": half, "end_mib": rss[-1], "peak_mib": max(rss),
                 "second_half_growth_mib": growth, "second_half_growth_fraction": growth / half,
@@ -295,7 +301,7 @@ def main(argv: list[str] | None = None) -> int:
     t_start = time.time()
     machine = machine_info()
     print(f"machine: {machine.get('cpu_model')}, {machine.get('cores_usable')} usable cores, flags "
-          f"{' '.join(machine.get('flags') or [])}; load {load_average()}")
+          f"{' '.join(machine.get('flags') or [])}; load average at start {machine.get('load_average')}")
     modes = [m.strip() for m in args.modes.split(",") if m.strip()]
     bm = prepared_paths(args.model, seed=args.seed, checkpoint=args.checkpoint)  # torch stays out of this process
     LOG_DIR.mkdir(parents=True, exist_ok=True)
@@ -316,7 +322,7 @@ def main(argv: list[str] | None = None) -> int:
                       f"{rss['start_mib']:.0f} -> {rss['half_mib']:.0f} -> {rss['end_mib']:.0f} MiB; CPU "
                       f"{r['cpu_ms_per_driven_s']:.1f} ms per driven s (2 idle cores would give "
                       f"{r['x_realtime_2_idle_cores_from_cpu']:.1f} x); per row [ms]: "
-                      + ", ".join(f"{k} {v:.3f}" for k, v in r["per_row_ms"].items()))
+                      + ", ".join(f"{k} {v:.3f}" for k, v in r["per_row_ms"].items()) + f"; {r['load']}")
         elif mode.startswith("offline"):
             workers = int(mode.removeprefix("offline").split("-")[0])
             precision = "int8" if mode.endswith("-int8") else "fp32"
@@ -330,7 +336,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"RSS {rss['start_mib']:.0f} -> {rss['end_mib']:.0f} MiB (peak {rss['peak_mib']:.0f}; worker "
                   f"processes {rss['workers_peak_mib']:.0f} MiB); CPU {r['cpu_ms_per_driven_s']:.1f} ms per driven s "
                   f"(2 idle cores would give {r['x_realtime_2_idle_cores_from_cpu']:.1f} x); "
-                  "per row [ms]: " + ", ".join(f"{k} {v:.3f}" for k, v in r["per_row_ms"].items()))
+                  "per row [ms]: " + ", ".join(f"{k} {v:.3f}" for k, v in r["per_row_ms"].items()) + f"; {r['load']}")
         elif mode == "batch":
             batch = batch_calls(bm["fp32"], log_path, [1, 2])
         else:
@@ -345,10 +351,12 @@ def main(argv: list[str] | None = None) -> int:
     if stream is not None:
         for r in runs:
             r["x_vs_streaming"] = r["x_realtime"] / stream["x_realtime"]
+    end = _load_fields(machine.get("load_average"))
+    print(f"load average at end {end['load_average'][1]}: {end['load']}")
     doc = {
         "benchmark": "replay",
         "started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(t_start)),
-        "machine": machine, "load_average_end": load_average(),
+        "machine": machine, "load_average_end": end["load_average"][1], "load": end["load"],
         "model": args.model, "model_source": bm["source"], "torch_imported": "torch" in sys.modules,
         "drive_minutes": args.minutes, "data_s": duration_s, "log": str(log_path), "runs": runs,
         "batch_calls": batch,

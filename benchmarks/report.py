@@ -23,14 +23,23 @@ def _yes(met: bool | None) -> str:
 def latency_lines(doc: dict) -> list[str]:
     """Terminal summary of a latency result."""
     lines = [f"{'config':<26} {'steps':>6} {'e2e p50':>8} {'p95':>7} {'p99':>7} {'max':>7}  {'model p50':>9} "
-             f"{'ovh p99':>7}  {'GFLOP/s':>7}"]
+             f"{'ovh p99':>7}  {'outside p50/p99':>15}  {'GFLOP/s':>7}  load"]
     for c in doc["configs"]:
         e, m, o = c["e2e_ms"], c["model_ms"], c["overhead_ms"]
         lines.append(f"{c['name']:<26} {c['steps']:>6} {e['p50']:>8.2f} {e['p95']:>7.2f} {e['p99']:>7.2f} "
-                     f"{e['max']:>7.2f}  {m['p50']:>9.2f} {o['p99']:>7.2f}  {c['model_gflops_per_s']:>7.1f}")
+                     f"{e['max']:>7.2f}  {m['p50']:>9.2f} {o['p99']:>7.2f}  {_outside(c):>15}  "
+                     f"{c['model_gflops_per_s']:>7.1f}  {c.get('load', '')}")
+    lines.append(f"outside: decode + assemble (the row's frames) + plausibility + guard + filter + sinks per row [ms]; "
+                 f"whole run: {doc.get('load', 'load unknown')}")
     for t in doc["targets"]:
         lines.append(f"target: {t['target']}: {t['measured']} -> {_yes(t['met'])}")
     return lines
+
+
+def _outside(c: dict) -> str:
+    """``p50 / p99`` [ms] of everything outside the model per row (bench.latency), ``-`` where not measured."""
+    o = c.get("outside_ms") or {}
+    return f"{o['p50']:.3f} / {o['p99']:.3f}" if o.get("count") else "-"
 
 
 def _machine_line(m: dict) -> str:
@@ -43,12 +52,12 @@ def latency_markdown(doc: dict) -> list[str]:
     quick = " -- QUICK development run (short drives), not the full benchmark" if doc.get("quick") else ""
     out = [f"### Latency per 50 Hz step ({doc['started']}){quick}", "",
            f"Machine: {_machine_line(doc['machine'])}. Load average at start {doc['machine']['load_average']}, "
-           f"at end {doc['load_average_end']}.", ""]
+           f"at end {doc['load_average_end']}: {doc.get('load', 'load unknown')}.", ""]
     for name, info in doc["models"].items():
         out.append(f"- **{name}**: {info['source']}; {info['flops']['total'] / 1e9:.3f} GFLOP per inference.")
     out += ["", "| configuration | steps | e2e p50 | p95 | p99 | max | model-only p50 / p99 | overhead p50 / p99 "
-                "| model GFLOP/s | target (e2e p99) | met? |",
-            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+                "| outside the model p50 / p99 | model GFLOP/s | target (e2e p99) | met? | load |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"]
     for c in doc["configs"]:
         e, m, o = c["e2e_ms"], c["model_ms"], c["overhead_ms"]
         t = _config_target(c)
@@ -56,10 +65,10 @@ def latency_markdown(doc: dict) -> list[str]:
         tgt = f"<= {t:g} ms" if t is not None else "reference"
         out.append(f"| {c['name']} | {c['steps']} | {e['p50']:.2f} | {e['p95']:.2f} | {e['p99']:.2f} | "
                    f"{e['max']:.2f} | {m['p50']:.2f} / {m['p99']:.2f} | {o['p50']:.2f} / {o['p99']:.2f} | "
-                   f"{c['model_gflops_per_s']:.1f} | {tgt} | {_yes(met)} |")
+                   f"{_outside(c)} | {c['model_gflops_per_s']:.1f} | {tgt} | {_yes(met)} | {c.get('load', '-')} |")
     lo, hi = doc["paper_orin_infer_ms"]
     out.append(f"| paper (Sec. V): PRML2 on an NVIDIA Orin GPU | - | - | - | - | - | {lo:g}-{hi:g} (inference) "
-               "| - | - | ~30 Hz | - |")
+               "| - | - | - | ~30 Hz | - | - |")
     out += ["", "Times in ms. e2e: from the receipt of the CAN frame that completes a 50 Hz row to the EKF output "
                 "(decode, assemble, window, ONNX/torch model, guard, EKF). `torch-*`: the plain PyTorch eager pipeline "
                 "(same frames, interleaved in the same run).", "",
@@ -113,8 +122,9 @@ def throughput_markdown(replay: dict | None, training: dict | None) -> list[str]
             if "cpu_ms_per_driven_s" in r:
                 cpu = (f"; CPU {r['cpu_ms_per_driven_s']:.1f} ms per driven s, so on 2 idle cores "
                        f"{r['x_realtime_2_idle_cores_from_cpu']:.1f} x")
+            load = r.get("load") or f"load {r['load_average'][0]}"  # (older results: no label)
             out.append(f"| replay of a {replay['drive_minutes']:g}-minute drive, {replay['model']} model, "
-                       f"{what}, stride 1 ({replay['started']}, load {r['load_average'][0]}) "
+                       f"{what}, stride 1 ({replay['started']}, {load}) "
                        f"| {r['x_realtime']:.1f} x real time{vs} ({r['rows_per_s']:.0f} rows/s{cpu}; per row [ms]: "
                        f"{where}) | >= {target:g} x | {met} |")
             workers = f", inference workers {rss['workers_peak_mib']:.0f} MiB at most" if rss.get("workers_peak_mib") \

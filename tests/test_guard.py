@@ -155,3 +155,22 @@ def test_torch_guard_gradients(torch_mod) -> None:
     (gm.sum() + gv.sum()).backward()
     assert torch.all(torch.isfinite(zero.grad))
     np.testing.assert_array_equal(zero.grad.numpy(), 1.0)
+
+
+def test_row_guard_matches_the_array_guard_bit_for_bit():
+    """physics_guard_row (the runtime's one prediction per step) gives exactly physics_guard's numbers."""
+    from prml2_edge.guard import physics_guard_row
+
+    rng = np.random.default_rng(7)
+    mean = rng.normal(0.0, 1.0, (4000, 5)) * np.array([40.0, 5.0, 12.0, 12.0, 2.0])
+    var = rng.uniform(1e-6, 10.0, (4000, 5))
+    mean[::97, 4] = np.nan
+    mean[::89, 0] = 0.0
+    mean[::89, 1] = 0.0
+    for a_max in (10.0, 5.0):
+        ref_mean, ref_var, ref_fired = physics_guard(mean, var, a_max)
+        for i in range(mean.shape[0]):
+            m, v, fired = physics_guard_row(mean[i], var[i], a_max)
+            np.testing.assert_array_equal(m, ref_mean[i])
+            np.testing.assert_array_equal(v, ref_var[i])
+            assert fired == bool(ref_fired[i])

@@ -24,6 +24,9 @@ from prml2_edge.runtime.initial_pose import InitialPose
 from prml2_edge.runtime.pipeline import Pipeline
 
 QUANTILES = (50, 95, 99)
+# every stage outside the model, in pipeline order; decode and assemble run per frame, the others per row
+OUTSIDE_STAGES = ("decode", "assemble", "plausibility", "guard", "filter", "sinks")
+OUTSIDE_TARGET_MS = {"p50": 0.25, "p99": 0.5}  # issue 29: everything per 50 Hz step outside the model
 
 
 def summarize(ms: np.ndarray) -> dict:
@@ -43,19 +46,28 @@ class StepSamples:
 
     e2e_ms: list[float] = field(default_factory=list)
     model_ms: list[float] = field(default_factory=list)
+    # CPU time per row outside the model: decode + assemble of every frame since the previous row, plus the
+    # row's plausibility, guard, filter and sinks [ms]; per stage in outside_stage_ms
+    outside_ms: list[float] = field(default_factory=list)
+    outside_stage_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in OUTSIDE_STAGES})
     wall_s: float = 0.0  # wall time of the frames fed, rows without inference included
     rows: int = 0  # every 50 Hz row produced
 
     def extend(self, other: StepSamples) -> None:
         self.e2e_ms.extend(other.e2e_ms)
         self.model_ms.extend(other.model_ms)
+        self.outside_ms.extend(other.outside_ms)
+        for stage, ms in other.outside_stage_ms.items():
+            self.outside_stage_ms[stage].extend(ms)
         self.wall_s += other.wall_s
         self.rows += other.rows
 
     def summary(self) -> dict:
         e2e = np.asarray(self.e2e_ms)
         model = np.asarray(self.model_ms)
-        return {"e2e_ms": summarize(e2e), "model_ms": summarize(model), "overhead_ms": summarize(e2e - model)}
+        return {"e2e_ms": summarize(e2e), "model_ms": summarize(model), "overhead_ms": summarize(e2e - model),
+                "outside_ms": summarize(np.asarray(self.outside_ms)),
+                "outside_stage_ms": {k: summarize(np.asarray(v)) for k, v in self.outside_stage_ms.items()}}
 
 
 def open_session_model(path: str | Path, threads: int = 1, spinning: bool | None = None,
@@ -96,11 +108,29 @@ def split_frames(frames: Sequence[can.Message], warmup_rows: int, chunk_s: float
     return warm, chunks
 
 
+def _outside_rows(lat, bounds: list[tuple[tuple[int, ...], tuple[int, ...]]], samples: StepSamples) -> None:
+    """Per row (``bounds``: the :data:`OUTSIDE_STAGES` sample counts before and after its frames), the sum of
+    each stage's samples in that range, into ``samples.outside_ms`` and ``samples.outside_stage_ms``."""
+    if not bounds:
+        return
+    per_stage = []
+    for j, stage in enumerate(OUTSIDE_STAGES):
+        cum = np.concatenate(([0.0], np.cumsum(lat.samples_ms(stage))))
+        lo = np.minimum([b[0][j] for b in bounds], cum.size - 1)
+        hi = np.minimum([b[1][j] for b in bounds], cum.size - 1)
+        ms = cum[hi] - cum[lo]
+        samples.outside_stage_ms[stage].extend(ms.tolist())
+        per_stage.append(ms)
+    samples.outside_ms.extend(np.sum(per_stage, axis=0).tolist())
+
+
 def measure_steps(pipeline: Pipeline, frames: Iterable[can.Message], skip: int = 0) -> StepSamples:
     """Feed ``frames`` to ``pipeline`` as fast as it takes them; per-row samples (first ``skip`` rows with an
     inference dropped). The pipeline may already have seen earlier frames of the same stream."""
     lat = pipeline.latency
     marks: list[tuple[int, int]] = []  # (end_to_end index, infer index) of rows with an inference
+    bounds = []  # per counted row: OUTSIDE_STAGES sample counts before its first frame and after its last
+    start = tuple(lat.count(s) for s in OUTSIDE_STAGES)
     rows = 0
     seen = 0
     gc.collect()
@@ -111,12 +141,18 @@ def measure_steps(pipeline: Pipeline, frames: Iterable[can.Message], skip: int =
         if not outs:
             continue
         rows += len(outs)
+        counted = False
         for i, out in enumerate(outs):
             if out.inferred:
                 seen += 1
                 if seen > skip:
                     marks.append((n_e2e + i, n_inf))
+                    counted = True
                 n_inf += 1
+        end = tuple(lat.count(s) for s in OUTSIDE_STAGES)
+        if counted:  # (two rows from one frame count as one step)
+            bounds.append((start, end))
+        start = end
     wall = time.perf_counter() - t0
     e2e_all = lat.samples_ms("end_to_end")
     inf_all = lat.samples_ms("infer")
@@ -125,4 +161,5 @@ def measure_steps(pipeline: Pipeline, frames: Iterable[can.Message], skip: int =
         if i_e2e < e2e_all.size and i_inf < inf_all.size:
             samples.e2e_ms.append(float(e2e_all[i_e2e]))
             samples.model_ms.append(float(inf_all[i_inf]))
+    _outside_rows(lat, bounds, samples)
     return samples

@@ -50,6 +50,20 @@ def load_average() -> list[float] | None:
         return None
 
 
+IDLE_LOAD_PER_CORE = 0.3  # a 1-min load average above this per usable core at start or end: not idle
+
+
+def load_label(before: list[float] | None, after: list[float] | None, cores: int | None = None) -> str:
+    """``"idle (load X -> Y)"`` or ``"loaded (load X -> Y)"`` from the 1-min load averages at the start and
+    end of a measurement (``"load unknown"`` where the OS reports none): a timing taken on a busy machine is
+    never labelled idle."""
+    if before is None or after is None:
+        return "load unknown"
+    cores = cores or usable_cores()
+    busy = max(before[0], after[0]) > IDLE_LOAD_PER_CORE * cores
+    return f"{'loaded' if busy else 'idle'} (load {before[0]:.2f} -> {after[0]:.2f})"
+
+
 def usable_cores() -> int:
     """Cores this process may run on (the affinity mask, not the host's count)."""
     try:

@@ -29,8 +29,9 @@ class ReplayInput:
 
 
 def simulate_log(seconds: float, out_path: str | Path, seed: int = 0, family: str = "mixed", mu: float = 1.0,
-                 signal_map: str = DEFAULT_MAP) -> tuple[Path, InitialPose, float]:
-    """Simulate ``seconds`` of driving and write it as a CAN log (format from the suffix).
+                 signal_map: str = DEFAULT_MAP, gnss_seconds: float = 0.0) -> tuple[Path, InitialPose, float]:
+    """Simulate ``seconds`` of driving and write it as a CAN log (format from the suffix), with GNSS fix
+    frames for the first ``gnss_seconds``.
 
     Returns ``(log path, initial pose from the drive's ground truth, duration [s])``.
     """
@@ -39,7 +40,8 @@ def simulate_log(seconds: float, out_path: str | Path, seed: int = 0, family: st
     from prml2_edge.data.simulate import simulate_drive
 
     drive = simulate_drive(seconds / 60.0, mu, seed, family)
-    info = encode_drive_to_log(drive, out_path, signal_map_path=shipped_map_path(signal_map))
+    info = encode_drive_to_log(drive, out_path, signal_map_path=shipped_map_path(signal_map),
+                               gnss_seconds=gnss_seconds)
     x_m, y_m, psi_rad = (float(v) for v in drive.pose_gt[0])
     pose = InitialPose(x_m, y_m, psi_rad_to_heading_deg(psi_rad), source="ground truth")
     return Path(info["out"]), pose, float(info["duration_s"])

@@ -52,6 +52,10 @@ _ACC = EkfState.ACC
 _B_YAW = CalState.YAW_RATE_OFFSET.start  # 8
 _K_WHEEL = CalState.WHEEL_SCALE.start  # 9
 _B_MODEL = CalState.MODEL_OMEGA_BIAS.start  # 10
+# process_jacobian's entries that change per step, in the order Ekf._predict fills them:
+# dp/dpsi (2), dp/dv (2x2), dp/da (2x2) row by row, then dpsi/domega, dv_x/da_x, dv_y/da_y
+_F_ROWS = np.array([_PX, _PX, _PX, _PX, _PX, _PY, _PY, _PY, _PY, _PY, _YAW, _VX, _VY], dtype=np.intp)
+_F_COLS = np.array([_YAW, _VX, _VY, _AX, _AY, _YAW, _VX, _VY, _AX, _AY, _OMEGA, _AX, _AY], dtype=np.intp)
 
 # Cholesky of the innovation covariance S: S = H P H^T + R_t is positive definite in exact
 # arithmetic (R_t > 0); rounding can break that when variances span many decades. Then a
@@ -70,6 +74,23 @@ def jitter_schedule(eps: float) -> list[float]:
         out.append(rel)
         rel *= JITTER_GROWTH
     return out
+
+# The hot path calls the LAPACK gufuncs behind np.linalg.cholesky / np.linalg.solve directly: the same
+# routines, so the same numbers, without the wrappers' checks and error-state set-up (~5 us a call, most of
+# a 5x5 factorisation). They return NaN where the wrappers raise; _cholesky_fast then takes the public path
+# (cholesky_jittered), so failures are handled exactly as before. Where NumPy has no such module the public
+# functions are used.
+try:
+    from numpy.linalg import _umath_linalg
+
+    def _cholesky_lo(s: np.ndarray) -> np.ndarray:
+        return _umath_linalg.cholesky_lo(s, signature="d->d")
+
+    def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return _umath_linalg.solve(a, b, signature="dd->d")
+except (ImportError, AttributeError):  # pragma: no cover - other NumPy layouts
+    _cholesky_lo = np.linalg.cholesky
+    _solve = np.linalg.solve
 
 # Ekf.step: after a non-finite state the filter restarts from the last finite state with its
 # covariance diagonal (at least P0's) multiplied by this factor.
@@ -132,17 +153,20 @@ class CalibrationNoise:
       10 min (1 sigma) at the default 2.2e-11 rad^2/s^3;
     * ``wheel_scale_psd_ps``: the rolling radius changes with tyre temperature and pressure, ~0.1 %
       in 10 min at 1.7e-9 1/s;
-    * ``model_bias_std_radps`` / ``model_bias_tau_s``: the model's omega_z error is slow (a bias over
-      one 5 s window) but has no lasting mean on the drives it was trained for: a first-order
-      Gauss-Markov process with this stationary sigma and correlation time. Over seconds the heading
-      then follows the calibrated CAN yaw rate, over minutes the model.
+    * ``model_bias_std_radps`` / ``model_bias_tau_s``: the model's omega_z error is slow (a per-window
+      bias of 0.1-0.3 deg/s that lasts across windows on the validation split): a first-order
+      Gauss-Markov process with this stationary sigma and correlation time (0.3 deg/s, 60 s; chosen on the
+      validation split, issue 26). With ``model_offset_share`` 0 the gyro-minus-model difference then
+      measures the CAN yaw-rate offset less this slow error: a standstill-calibrated offset (0.05 deg/s) is
+      left alone and the heading follows the gyro, an unknown one (0.5 deg/s prior, no stop) is learned
+      from the model to about this sigma.
     """
 
     yaw_offset_psd_rad2ps3: float = 2.2e-11
     wheel_scale_psd_ps: float = 1.7e-9
-    model_bias_std_radps: float = 0.2 * schema.DEG_TO_RAD
-    model_bias_tau_s: float = 5.0
-    model_offset_share: float = 1.0  # how much of the CAN yaw-rate offset the model's omega_z carries
+    model_bias_std_radps: float = 0.3 * schema.DEG_TO_RAD
+    model_bias_tau_s: float = 60.0
+    model_offset_share: float = 0.0  # how much of the CAN yaw-rate offset the model's omega_z carries
 
     def decay(self, dt_s: float = schema.DT_S) -> float:
         """``exp(-dt / tau)`` of the model bias over ``dt_s`` [s]."""
@@ -170,7 +194,7 @@ class CalibrationStd:
 
     yaw_offset_radps: float = 0.5 * schema.DEG_TO_RAD
     wheel_scale: float = 0.01
-    model_bias_radps: float = 0.2 * schema.DEG_TO_RAD  # CalibrationNoise.model_bias_std_radps
+    model_bias_radps: float = 0.3 * schema.DEG_TO_RAD  # CalibrationNoise.model_bias_std_radps
 
     def diagonal(self) -> np.ndarray:
         std = np.array([self.yaw_offset_radps, self.wheel_scale, self.model_bias_radps])
@@ -353,6 +377,19 @@ def cholesky_jittered(s: np.ndarray) -> np.ndarray:
     return np.diag(np.sqrt(np.maximum(diag, tiny)))
 
 
+def _cholesky_fast(s: np.ndarray) -> np.ndarray:
+    """:func:`cholesky_jittered` with the plain factorisation tried first through the bare gufunc (same
+    numbers); a failed one (NaN-filled) takes :func:`cholesky_jittered` itself. Call under ``np.errstate``
+    ignoring invalid values."""
+    try:
+        chol = _cholesky_lo(s)
+    except np.linalg.LinAlgError:  # the public fallback of _cholesky_lo raises
+        return cholesky_jittered(s)
+    if chol[-1, -1] != chol[-1, -1]:  # NaN: the factorisation failed (the gufunc fills all of it)
+        return cholesky_jittered(s)
+    return chol
+
+
 def _update_selected(
     x: np.ndarray, P: np.ndarray, idx: np.ndarray, innovation: np.ndarray, meas_var: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -362,9 +399,10 @@ def _update_selected(
     """
     hp = P[idx, :]  # (m, 8) = H P
     s = hp[:, idx] + np.diag(meas_var)  # (m, m) innovation covariance S = H P H^T + R_t
-    chol = cholesky_jittered(s)
-    # K^T = S^-1 H P via two triangular solves (no explicit inverse; S and P symmetric).
-    k_t = np.linalg.solve(chol.T, np.linalg.solve(chol, hp))  # (m, 8)
+    with np.errstate(invalid="ignore"):
+        chol = _cholesky_fast(s)
+        # K^T = S^-1 H P via two triangular solves (no explicit inverse; S and P symmetric).
+        k_t = _solve(chol.T, _solve(chol, hp))  # (m, 8)
     k = k_t.T  # (8, m)
     x_new = x + k @ innovation
     # Joseph form P = (I - K H) P (I - K H)^T + K R_t K^T. Unlike (I - K H) P it stays symmetric
@@ -377,20 +415,22 @@ def _update_selected(
 
 
 def update_linear(
-    x: np.ndarray, P: np.ndarray, h: np.ndarray, innovation: np.ndarray, meas_var: np.ndarray
+    x: np.ndarray, P: np.ndarray, h: np.ndarray, innovation: np.ndarray, meas_var: np.ndarray,
+    eye: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Kalman update with a dense (linearised) ``H`` (m, n): the raw cues and the calibrated model z.
 
     Same Cholesky gain and Joseph form as the selection update; ``innovation = y - h(x)`` (m,),
-    ``meas_var`` (m,) the diagonal of ``R``.
+    ``meas_var`` (m,) the diagonal of ``R``; ``eye`` an (n, n) identity to use (the filter keeps one).
     """
     hp = h @ P  # (m, n)
     s = hp @ h.T + np.diag(meas_var)
-    chol = cholesky_jittered(s)
-    k_t = np.linalg.solve(chol.T, np.linalg.solve(chol, hp))  # (m, n) = S^-1 H P
+    with np.errstate(invalid="ignore"):
+        chol = _cholesky_fast(s)
+        k_t = _solve(chol.T, _solve(chol, hp))  # (m, n) = S^-1 H P
     k = k_t.T
     x_new = x + k @ innovation
-    a = np.eye(P.shape[0]) - k @ h
+    a = (np.eye(P.shape[0]) if eye is None else eye) - k @ h
     p_new = a @ P @ a.T + (k * meas_var) @ k_t
     return x_new, symmetrize(p_new)
 
@@ -437,18 +477,17 @@ def cue_measurement(x: np.ndarray, yaw_rate: float | None, wheel_speed: float | 
 
     Returns ``(innovation (m,), H (m, 11))`` with ``m`` the number of cues given.
     """
-    rows, innov = [], []
+    omega, vx, b_yaw, k_wheel = float(x[_OMEGA]), float(x[_VX]), float(x[_B_YAW]), float(x[_K_WHEEL])
+    m = (yaw_rate is not None) + (wheel_speed is not None)
+    h = np.zeros((m, FULL_DIM))
+    innov = []
     if yaw_rate is not None:
-        row = np.zeros(FULL_DIM)
-        row[_OMEGA] = row[_B_YAW] = 1.0
-        rows.append(row)
-        innov.append(yaw_rate - (x[_OMEGA] + x[_B_YAW]))
+        h[0, _OMEGA] = h[0, _B_YAW] = 1.0
+        innov.append(yaw_rate - (omega + b_yaw))
     if wheel_speed is not None:
-        row = np.zeros(FULL_DIM)
-        row[_VX] = 1.0 + x[_K_WHEEL]
-        rows.append(row)
-        innov.append(wheel_speed - (1.0 + x[_K_WHEEL]) * x[_VX])
-    return np.asarray(innov, dtype=np.float64), np.asarray(rows, dtype=np.float64).reshape(len(rows), FULL_DIM)
+        h[m - 1, _VX] = 1.0 + k_wheel
+        innov.append(wheel_speed - (1.0 + k_wheel) * vx)
+    return np.array(innov, dtype=np.float64), h
 
 
 # Standstill: v_x, v_y, a_x, a_y and omega_z are zero (the zero-velocity / zero-rotation update).
@@ -560,6 +599,13 @@ class Ekf:
         if q.shape != (self.dim, self.dim):
             raise ValueError(f"Q must have shape ({self.dim}, {self.dim}), got {q.shape}")
         self.Q = q
+        # per-step templates (the hot path fills the entries that change instead of building them)
+        self._eye = np.eye(self.dim)
+        self._F = np.eye(self.dim)  # process_jacobian: the entries in _F_IDX change per step
+        if self.calibration:
+            self._F[_B_MODEL, _B_MODEL] = self.model_bias_decay
+            # only H[v_x, v_x] = 1 + scale changes
+            self._H_model = model_measurement(np.zeros(FULL_DIM), self.model_offset_share)[1]
         self.x: np.ndarray = np.zeros(self.dim)
         self.P: np.ndarray = np.eye(self.dim)
         self.n_resets = 0
@@ -584,8 +630,41 @@ class Ekf:
         self._P0 = self.P.copy()
         self._last_good = (self.x.copy(), self.P.copy())
 
+    def _predict(self) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`predict` of this filter's state: the same numbers (same operations, in the same order),
+        with the Jacobian filled into a kept template and the state arithmetic on Python floats."""
+        dt = self.dt_s
+        half_dt2 = 0.5 * dt * dt
+        xs = self.x.tolist()
+        p_x, p_y, psi, omega, v_x, v_y, a_x, a_y = xs[:STATE_DIM]
+        c, s = math.cos(psi), math.sin(psi)
+        r = np.array([[c, -s], [s, c]])
+        rd_x, rd_y = (r @ np.array([v_x * dt + a_x * half_dt2, v_y * dt + a_y * half_dt2])).tolist()
+        xs[:STATE_DIM] = [p_x + rd_x, p_y + rd_y, psi + omega * dt, omega, v_x + a_x * dt, v_y + a_y * dt, a_x, a_y]
+        if self.calibration:
+            xs[_B_MODEL] *= self.model_bias_decay
+        c_dt, s_dt, c_h, s_h = c * dt, s * dt, c * half_dt2, s * half_dt2
+        f = self._F
+        f[_F_ROWS, _F_COLS] = (-rd_y, c_dt, -s_dt, c_h, -s_h, rd_x, s_dt, c_dt, s_h, c_h, dt, dt, dt)
+        p_new = f @ self.P @ f.T + self.Q
+        return np.array(xs), 0.5 * (p_new + p_new.T)
+
+    def _update_model(self, x: np.ndarray, p: np.ndarray, z: np.ndarray,
+                      z_var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The model's z: :func:`update_model_calibrated` (with the kept H template) or :func:`update`."""
+        if not self.calibration:
+            return _update_selected(x, p, _Z_IDX, z - x[_Z_IDX], z_var)
+        omega, v_x, v_y, a_x, a_y = x[_OMEGA:_AY + 1].tolist()
+        b_yaw, k_wheel, b_model = x[_B_YAW:].tolist()
+        h = self._H_model
+        h[schema.Z.V_X, _VX] = 1.0 + k_wheel
+        hx = [0.0] * MEAS_DIM
+        hx[schema.Z.V_X], hx[schema.Z.V_Y], hx[schema.Z.A_X], hx[schema.Z.A_Y] = (1.0 + k_wheel) * v_x, v_y, a_x, a_y
+        hx[schema.Z.OMEGA_Z] = omega + self.model_offset_share * b_yaw + b_model
+        return update_linear(x, p, h, z - np.array(hx), z_var, self._eye)
+
     def _commit(self, x: np.ndarray, p: np.ndarray, status: StepStatus) -> StepStatus:
-        if np.all(np.isfinite(x)) and np.all(np.isfinite(p)):
+        if np.isfinite(x).all() and np.isfinite(p).all():
             self.x, self.P = x, p
             self._last_good = (x.copy(), p.copy())
             return status
@@ -602,7 +681,7 @@ class Ekf:
         variances. Never raises on bad data: see :class:`StepStatus`.
         """
         with np.errstate(all="ignore"):
-            x, p = predict(self.x, self.P, self.Q, self.dt_s, self.model_bias_decay)
+            x, p = self._predict()
             if z is None and z_var is None:
                 return self._commit(x, p, StepStatus.PREDICT_ONLY)
             zz = None if z is None else np.asarray(z, dtype=np.float64)
@@ -612,15 +691,14 @@ class Ekf:
                 and vv is not None
                 and zz.shape == (MEAS_DIM,)
                 and vv.shape == (MEAS_DIM,)
-                and bool(np.all(np.isfinite(zz)))
-                and bool(np.all(np.isfinite(vv)))
-                and bool(np.all(vv > 0.0))
+                and np.isfinite(zz).all()
+                and np.isfinite(vv).all()
+                and (vv > 0.0).all()
             )
             if not valid:
                 return self._commit(x, p, StepStatus.INPUT_INVALID)
             try:
-                x, p = (update_model_calibrated(x, p, zz, vv, self.model_offset_share) if self.calibration
-                        else update(x, p, zz, vv))
+                x, p = self._update_model(x, p, zz, vv)
             except np.linalg.LinAlgError:
                 x = np.full(self.dim, np.nan)  # cannot happen for finite P; handled as a reset
             return self._commit(x, p, StepStatus.SUCCESS)
@@ -668,7 +746,7 @@ class Ekf:
             innovation, h = cue_measurement(self.x, yaw_rate, wheel_speed)
             var = np.array([v for _, v in cues])
             try:
-                x, p = update_linear(self.x, self.P, h, innovation, var)
+                x, p = update_linear(self.x, self.P, h, innovation, var, self._eye)
             except np.linalg.LinAlgError:
                 x, p = np.full(self.dim, np.nan), self.P
             return self._commit(x, p, StepStatus.SUCCESS)

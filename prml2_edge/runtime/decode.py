@@ -116,6 +116,7 @@ class _MessagePlan:
     checksum: SplitField | None = None
     checksum_fn: object = None
     checksum_keep: bytes = b""  # the payload bits outside the checksum (the function sees the checksum cleared)
+    checksum_keep_int: int | None = None  # the same as one big-endian integer (a full frame is cleared in one AND)
     gnss: object = None  # GnssSpec when this message carries the GNSS fix
     last_counter: int | None = None
     min_length: int | None = None  # shortest payload accepted (maps with short_frames): holds every mapped bit
@@ -171,6 +172,8 @@ class FrameDecoder:
                     plan.checksum = SplitField.of(msg, checks.checksum)
                     plan.checksum_fn = checksum_function(checks.checksum_algorithm)
                     plan.checksum_keep = bytes(~b & 0xFF for b in plan.checksum.mask(msg))
+                    if len(plan.checksum_keep) == plan.length:
+                        plan.checksum_keep_int = int.from_bytes(plan.checksum_keep, "big")
             self.plans[msg.frame_id] = plan
         return plan
 
@@ -184,18 +187,23 @@ class FrameDecoder:
         plan = self.plans.get(msg.arbitration_id)
         if plan is None or msg.is_extended_id != plan.is_extended:
             return DecodedFrame(FrameStatus.IGNORED, t_s)
-        data = msg.data
-        if len(data) != plan.length:
-            if plan.min_length is None or not plan.min_length <= len(data) < plan.length:
+        data = bytes(msg.data)
+        n_data = len(data)
+        full = n_data == plan.length
+        if not full:
+            if plan.min_length is None or not plan.min_length <= n_data < plan.length:
                 return DecodedFrame(FrameStatus.REJECTED_DLC, t_s, plan.name)
         try:
-            payload = bytes(data) if len(data) == plan.length else bytes(data) + bytes(plan.length - len(data))
+            payload = data if full else data + bytes(plan.length - n_data)
             decoded = plan.message.decode(payload, decode_choices=False)
         except Exception:  # cantools raises several types on malformed data
             return DecodedFrame(FrameStatus.REJECTED_DECODE, t_s, plan.name)
         if plan.checksum is not None:
             try:
-                cleared = bytes(b & k for b, k in zip(data, plan.checksum_keep, strict=False))  # short_frames: shorter
+                if full and plan.checksum_keep_int is not None:  # the usual case: one AND, not a generator
+                    cleared = (int.from_bytes(data, "big") & plan.checksum_keep_int).to_bytes(n_data, "big")
+                else:  # short_frames: shorter
+                    cleared = bytes(b & k for b, k in zip(data, plan.checksum_keep, strict=False))
                 expected = plan.checksum_fn(plan.frame_id, cleared)  # type: ignore[operator]
             except Exception:
                 return DecodedFrame(FrameStatus.REJECTED_CHECKSUM, t_s, plan.name)
@@ -205,7 +213,7 @@ class FrameDecoder:
         mon = plan.injection
         status = FrameStatus.USED
         if mon is not None:
-            mon.rate(t_s, bytes(data))
+            mon.rate(t_s, data)
         if plan.counter is not None:
             status, gap = self._counter(plan, plan.counter.read(decoded), t_s)
         suspected = False

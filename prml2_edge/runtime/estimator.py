@@ -16,7 +16,7 @@ from typing import Protocol
 import numpy as np
 
 from prml2_edge import schema
-from prml2_edge.guard import GuardStats, physics_guard
+from prml2_edge.guard import GuardStats, physics_guard_row
 from prml2_edge.runtime.status import InferenceStatus
 from prml2_edge.runtime.window import Window
 
@@ -81,9 +81,9 @@ class Estimator:
         else:
             # Only the newest decoder step is ever consumed (held until the next window), so only it is
             # guarded and counted: the guard statistics are over used predictions.
-            mean, var, fired = physics_guard(self.model.mean[-1:], self.model.var[-1:], self.a_max_mps2)
-            self._z_mean, self._z_var, self._fired = mean[0], var[0], bool(fired[0])
-            self.guard_stats.update(fired)
+            self._z_mean, self._z_var, self._fired = physics_guard_row(self.model.mean[-1], self.model.var[-1],
+                                                                       self.a_max_mps2)
+            self.guard_stats.add(self._fired)
             self._output_ok = self.window.invalid_fraction <= self.max_invalid_fraction
         return t1 - t0, time.perf_counter_ns() - t1
 

@@ -42,6 +42,16 @@ _YAW_RATE = _SIG["yaw_rate_radps"].index
 _SPEEDO = _SIG["speedometer_mps"].index
 _REAR = np.array([_SIG["wheel_speed_rl_mps"].index, _SIG["wheel_speed_rr_mps"].index])
 _WHEELS = np.array(schema.WHEEL_SPEED_INDICES)
+_RL, _RR = (int(i) for i in _REAR)
+_WHEEL_LIST = [int(i) for i in _WHEELS]
+
+
+def _rear_speed(values: np.ndarray, valid: np.ndarray) -> float | None:
+    """Mean rear-axle wheel speed [m/s] (``np.mean`` of the two: their sum over 2), None unless both are valid.
+    On Python floats: the filter asks for it twice a step, and NumPy's call cost on 2 elements dominated."""
+    if not (valid[_RL] and valid[_RR]):
+        return None
+    return (float(values[_RL]) + float(values[_RR])) / 2
 _YAW, _OMEGA, _VX = EkfState.YAW.start, EkfState.OMEGA_Z.start, EkfState.VEL.start
 _RESOLUTION_WINDOW = 200  # steps between distinct yaw-rate readings kept for the resolution estimate
 
@@ -262,10 +272,9 @@ class PoseFilter:
             yaw = float(values[_YAW_RATE])
             yaw_var = yaw_var + float(substitute_std[_YAW_RATE]) ** 2
         wheel = None
-        if valid[_REAR].all():
-            w = float(np.mean(values[_REAR]))
-            if w >= cfg.cue_min_speed_mps:
-                wheel = w
+        w = _rear_speed(values, valid)
+        if w is not None and w >= cfg.cue_min_speed_mps:
+            wheel = w
         if yaw is None and wheel is None:
             return False
         status = self.ekf.update_cues(yaw, yaw_var, wheel,  # type: ignore[union-attr]
@@ -276,12 +285,15 @@ class PoseFilter:
         """Integrate the rear-axle wheel speed along the filter's heading; a gap or slow driving restarts it."""
         if self._odo_anchor is None:
             return
-        w = float(np.mean(values[_REAR])) if valid[_REAR].all() else math.nan
-        if not w >= self.config.scale_min_speed_mps:
+        w = _rear_speed(values, valid)
+        if w is None or not w >= self.config.scale_min_speed_mps:
             self._odo_anchor = None
             return
-        psi = self.ekf.x[_YAW]  # type: ignore[union-attr]
-        self._odo += w * self.dt_s * np.array([math.cos(psi), math.sin(psi)])
+        psi = float(self.ekf.x[_YAW])  # type: ignore[union-attr]
+        step = w * self.dt_s
+        odo = self._odo
+        odo[0] += step * math.cos(psi)
+        odo[1] += step * math.sin(psi)
 
     def _scale_from_gnss(self, fix: GnssFix, t_s: float) -> None:
         """Wheel scale = wheel distance / GNSS distance - 1 over baselines of ``scale_baseline_s``, fed to the
@@ -304,9 +316,8 @@ class PoseFilter:
 
     def _still(self, values: np.ndarray, valid: np.ndarray, t_s: float) -> bool:
         """Standstill: every valid wheel speed 0 (and the speedometer) for ``standstill_hold_s``."""
-        wheels_ok = valid[_WHEELS]
-        still = bool(wheels_ok.any() and np.all(values[_WHEELS][wheels_ok] <= 0.0)
-                     and (not valid[_SPEEDO] or values[_SPEEDO] <= 0.0))
+        seen = [float(values[i]) for i in _WHEEL_LIST if valid[i]]  # (Python floats: NumPy's call cost on 4 values)
+        still = bool(seen) and all(v <= 0.0 for v in seen) and (not valid[_SPEEDO] or values[_SPEEDO] <= 0.0)
         if not still:
             self._still_since = None
             return False
