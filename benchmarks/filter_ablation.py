@@ -5,14 +5,15 @@ every filter variant then replays those outputs (``ReplayModel``: the model's z 
 so each row differs from the next by one choice only, on the same windows. Variants:
 
 * ``paper filter``: the paper's 8-state EKF on the model's z (``calibration off``);
-* ``+cal, prior start``: the calibrating filter (raw yaw-rate and wheel cues, calibration states) starting from
-  its prior, with the model's variance taken at its word: what the runtime was before;
-* ``+ standstill offset``: the calibrating filter starts from the standstill offset the OSD baseline subtracts
-  (``restore_standstill_calibration``; a car has it in its calibration file);
-* ``+ slow-error inflation``: the model's omega_z variance times its measured inflation
-  (``evaluation/error_model.py``, from the model's metadata) instead;
-* ``both (the runtime's default)``.
+* ``previous default``: the calibrating filter as shipped before issue 26's redesign (the model's omega_z carries
+  the whole CAN yaw-rate offset, its slow error a 0.2 deg/s Gauss-Markov state of 5 s, its variance times the
+  metadata's 5 s mean-error inflation);
+* ``model omega_z ignored``: the same with the model's omega_z variance times 1e8 (gyro and wheels carry the yaw);
+* ``+ offset share 0``: the model's omega_z does not carry the offset, so gyro minus model measures it;
+* ``+ slow error 0.3 deg/s, 60 s``: the model's slow error state as measured on validation;
+* ``+ fast part inflated 5e4``: step by step the gyro carries the yaw rate (the runtime's default).
 
+Every calibrated variant starts from the standstill offset the OSD baseline subtracts (a car's calibration file).
 The OSD baseline is tuned on the validation split (``tune_osd``) and is the reference of every ratio and of the
 paired intervals (``paired_comparison``: mean of variant - OSD RMSE per window, bootstrap 95 %). Protocols: the
 paper's (from the true pose, no GNSS) and the deployment protocol (30 s of GNSS first).
@@ -55,17 +56,28 @@ from prml2_edge.progress import Progress
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "results" / "filter_ablation.json"
 OSD = "OSD-Baseline"
-NO_INFLATION = (("model_omega_var_inflation", 1.0),)
+DEG = np.pi / 180.0
+DEFAULT = "+ fast part inflated 5e4 (the runtime's default)"
+
+
+PREVIOUS = (("model_offset_share", 1.0), ("cal_model_bias_tau_s", 5.0),
+            ("cal_model_bias_std_radps", 0.2 * DEG), ("model_omega_var_inflation", None))
 
 
 def variants(model: str) -> dict[str, ModelSpec]:
     base = ModelSpec("PRML2", "onnx", model)
     cal = replace(base, calibration=True)
+    prev = dict(PREVIOUS)
     return {"paper filter": base,
-            "+cal, prior start": replace(cal, standstill_calibration=False, filter=NO_INFLATION),
-            "+ standstill offset": replace(cal, filter=NO_INFLATION),
-            "+ slow-error inflation": replace(cal, standstill_calibration=False),
-            "both (the runtime's default)": cal}
+            "previous default (+cal, offset share 1, slow error 0.2 °/s 5 s, metadata inflation)":
+                replace(cal, filter=PREVIOUS),
+            "model ω_z ignored (inflation 1e8)": replace(cal, filter=tuple({**prev, "model_omega_var_inflation": 1e8}
+                                                                        .items())),
+            "+ offset share 0": replace(cal, filter=tuple({**prev, "model_offset_share": 0.0}.items())),
+            "+ slow error 0.3 °/s, 60 s": replace(cal, filter=tuple({**prev, "model_offset_share": 0.0,
+                                                                    "cal_model_bias_tau_s": 60.0,
+                                                                    "cal_model_bias_std_radps": 0.3 * DEG}.items())),
+            "+ fast part inflated 5e4 (the runtime's default)": cal}
 
 
 def _one_task(args):
@@ -105,13 +117,31 @@ def summarise(results: dict[str, list], osd: list) -> dict:
         cov = coverage(res)
         out[name] = {"rmse_mean_m": s["rmse_mean_m"], "drift_mean_pct": s["drift_mean_pct"], "n_windows": len(res),
                      "ratio_to_osd": s["rmse_mean_m"] / ref, "coverage_pct": cov,
-                     "paired_vs_osd": None if name == OSD else paired_comparison(osd, res)}
+                     "paired_vs_osd": None if name == OSD else paired_comparison(osd, res),
+                     "per_car": per_car(res, osd)}
+    return out
+
+
+def car_of(key: str) -> str:
+    """The car of a window key ``split/<car>_<split>_<n>@start``."""
+    return key.split("/", 1)[1].rsplit("_", 2)[0]
+
+
+def per_car(res: list, osd: list) -> dict:
+    """RMSE [m] and its ratio to OSD's on the same car's windows."""
+    out = {}
+    for car in sorted({car_of(r.task_key) for r in osd}):
+        mine = [r.rmse_m for r in res if car_of(r.task_key) == car]
+        ref = [r.rmse_m for r in osd if car_of(r.task_key) == car]
+        out[car] = {"rmse_mean_m": float(np.mean(mine)), "ratio_to_osd": float(np.mean(mine) / np.mean(ref)),
+                    "paired_vs_osd": paired_comparison([r for r in osd if car_of(r.task_key) == car],
+                                                       [r for r in res if car_of(r.task_key) == car])}
     return out
 
 
 def check_replay_is_exact(specs: dict[str, ModelSpec], task) -> float:
     """Largest position difference [m] between the default variant on replayed outputs and on the model itself."""
-    name = "both (the runtime's default)"
+    name = DEFAULT
     replayed = _one_task(({name: specs[name]}, task))[name]
     direct = run_window(specs[name], task)
     return float(np.max(np.abs(replayed.pose - direct.pose)))
@@ -149,9 +179,26 @@ def markdown(doc: dict) -> list[str]:
             c = f"{cov['coverage_2sigma_pct']:.0f} / {cov['coverage_3sigma_pct']:.0f}" if cov else "–"
             out.append(f"| {key} | {name} | {r['rmse_mean_m']:.2f} ({r['ratio_to_osd']:.2f}×) | "
                        f"{r['drift_mean_pct']:.2f} | {paired} | {c} | {r['n_windows']} |")
+    out += car_table(doc)
     out += ["", f"Replay check: the default filter on replayed outputs against the model itself, largest position "
             f"difference {doc.get('replay_exact_max_m', float('nan')):.1e} m. OSD Q scale {doc['osd_q_scale']:g} "
             f"(tuned on val). {doc['wall_s']:.0f} s."]
+    return out
+
+
+def car_table(doc: dict) -> list[str]:
+    """Per car: OSD's RMSE and the default's and the previous default's ratio to it, paired interval [m]."""
+    prev = next(n for n in next(iter(doc["splits"].values())) if n.startswith("previous default"))
+    out = ["", "Per car, 60 s RMSE × OSD on the same car's windows (paired difference to OSD [m], 95 %):", "",
+           "| split / protocol | car | OSD m | the default | previous default |", "|---|---|---:|---|---|"]
+    for key, rows in doc["splits"].items():
+        for car, ref in rows[OSD]["per_car"].items():
+            cells = []
+            for name in (DEFAULT, prev):
+                c = rows[name]["per_car"][car]
+                lo, hi = c["paired_vs_osd"]["rmse_diff_ci95_m"]
+                cells.append(f"{c['ratio_to_osd']:.2f}× [{lo:+.1f}, {hi:+.1f}]")
+            out.append(f"| {key} | {car} | {ref['rmse_mean_m']:.1f} | {cells[0]} | {cells[1]} |")
     return out
 
 
