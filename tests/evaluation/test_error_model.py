@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -87,7 +88,9 @@ def test_the_calibrated_filter_weighs_the_model_against_the_yaw_rate_cue_by_the_
     onboard[:, schema.SIGNAL_BY_NAME["speedometer_mps"].index] = 10.0
     x0 = np.zeros(EkfState.DIM)
     x0[EkfState.VEL.start] = 10.0
-    cfg = LocalizerConfig(yaw_cue_resolution_radps=math.radians(0.01))
+    # the inflation from the model's metadata (None), with the model carrying the whole offset as this one does
+    cfg = LocalizerConfig(yaw_cue_resolution_radps=math.radians(0.01), model_omega_var_inflation=None,
+                          model_offset_share=1.0, cal_model_bias_tau_s=5.0, cal_model_bias_std_radps=math.radians(0.2))
 
     def omega_dps(inflation: float | None) -> float:
         model = _SlowYawErrorModel(np.full(n, math.radians(1.0)), inflation)
@@ -100,9 +103,11 @@ def test_the_calibrated_filter_weighs_the_model_against_the_yaw_rate_cue_by_the_
 
 def test_the_inflation_comes_from_the_config_else_the_metadata_else_one():
     measured = _SlowYawErrorModel(np.zeros(1), 130.0)
-    assert omega_var_inflation(measured, LocalizerConfig()) == 130.0
+    assert omega_var_inflation(measured, LocalizerConfig()) == 5.0e4  # the default, chosen on validation
+    assert omega_var_inflation(measured, LocalizerConfig(model_omega_var_inflation=None)) == 130.0
     assert omega_var_inflation(measured, LocalizerConfig(model_omega_var_inflation=3.0)) == 3.0
-    assert omega_var_inflation(_SlowYawErrorModel(np.zeros(1), None), LocalizerConfig()) == 1.0
+    assert omega_var_inflation(_SlowYawErrorModel(np.zeros(1), None),
+                               LocalizerConfig(model_omega_var_inflation=None)) == 1.0
     with pytest.raises(ValueError, match=">= 1"):
         omega_var_inflation(measured, LocalizerConfig(model_omega_var_inflation=0.5))
 
@@ -114,3 +119,49 @@ def test_evaluation_starts_the_calibrated_filter_from_the_baselines_standstill_o
     assert restore_standstill_calibration(loc, StandstillBias(0.1, math.radians(0.3), 400))
     cal, cov = loc.filter.calibration0
     assert cal[0] == pytest.approx(math.radians(0.3)) and math.sqrt(cov[0, 0]) == pytest.approx(math.radians(0.05))
+
+
+def _straight_with_gyro_offset(offset_dps: float, seconds: float) -> tuple[np.ndarray, np.ndarray]:
+    n = schema.WINDOW_LEN + int(seconds / DT)
+    onboard = np.zeros((n, schema.NUM_SIGNALS))
+    onboard[:, list(schema.WHEEL_SPEED_INDICES)] = 15.0
+    onboard[:, schema.SIGNAL_BY_NAME["speedometer_mps"].index] = 15.0
+    onboard[:, schema.SIGNAL_BY_NAME["yaw_rate_radps"].index] = math.radians(offset_dps)
+    x0 = np.zeros(EkfState.DIM)
+    x0[EkfState.VEL.start] = 15.0
+    return onboard, x0
+
+
+def _heading_error_dps(cfg: LocalizerConfig, model_error_dps: float, restore: bool) -> tuple[float, float]:
+    """Straight for 30 s, the gyro 0.4 deg/s off; the model does not carry the offset (its omega_z is the truth plus
+    a constant ``model_error_dps``). ``(final heading error [deg], learned offset [deg/s])``."""
+    onboard, x0 = _straight_with_gyro_offset(0.4, 30.0)
+    model = _SlowYawErrorModel(np.full(len(onboard), math.radians(model_error_dps)), None)
+    model.bias = StandstillBias(0.0, math.radians(0.4), 100)  # the OSD z less the offset: the truth
+    loc = StreamingLocalizer(model, replace(cfg, yaw_cue_resolution_radps=math.radians(0.01)))  # a fine gyro
+    if restore:  # a standstill taught the offset: the car's calibration file
+        loc.restore_calibration(np.array([math.radians(0.4), 0.0, 0.0]),
+                                np.diag([math.radians(0.05), 0.01, math.radians(0.3)]) ** 2)
+    traj = loc.run_arrays(onboard, x0, start_index=schema.WINDOW_LEN - 1)
+    return abs(math.degrees(float(traj.x[-1, EkfState.YAW.start]))), math.degrees(float(traj.cal[-1, 0]))
+
+
+PREVIOUS = dict(model_offset_share=1.0, cal_model_bias_tau_s=5.0, cal_model_bias_std_radps=math.radians(0.2),
+                model_omega_var_inflation=200.0)
+
+
+def test_an_unknown_gyro_offset_is_learned_from_the_model_while_driving_straight():
+    """No stop, no GNSS, the offset unknown (prior 0.5 deg/s): the gyro-minus-model difference starts teaching it, so
+    the heading drifts less than the 12 deg the offset alone gives; the previous filter (the model carrying the whole
+    offset) could not tell it at all."""
+    heading, learned = _heading_error_dps(LocalizerConfig(), 0.05, restore=False)
+    heading_prev, learned_prev = _heading_error_dps(LocalizerConfig(**PREVIOUS), 0.05, restore=False)
+    assert learned > 0.1 and heading < 0.75 * heading_prev, (heading, learned, heading_prev)
+    assert abs(learned_prev) < 0.05 and heading_prev > 10.0, (heading_prev, learned_prev)
+
+
+def test_a_calibrated_gyro_keeps_the_heading_when_the_model_has_a_slow_bias():
+    """The offset known from a standstill (0.05 deg/s) and the model 0.3 deg/s off for the whole 30 s: the heading
+    follows the gyro (9 deg if it followed the model) and the offset stays."""
+    heading, learned = _heading_error_dps(LocalizerConfig(), 0.3, restore=True)
+    assert heading < 0.2 and abs(learned - 0.4) < 0.01, (heading, learned)
