@@ -201,9 +201,9 @@ def test_a_gnss_walking_away_is_refused_and_the_status_says_why(setup, clean):
     # the kinematic stand-in passes the CAN yaw rate through: its omega_z carries the whole offset. Pinned to the
     # model-error settings before issue 26's redesign: with the new defaults (slow error 0.3 deg/s over 60 s) this
     # walk is not refused by 50 s with this stand-in model -- an open item, see docs/reliability.md
-    pipeline, outs = replay(setup, [walk], "spoof", frames=gnss_frames,
-                            localizer_config=LocalizerConfig(model_offset_share=1.0, model_omega_var_inflation=None, cal_model_bias_tau_s=5.0,
-                                                             cal_model_bias_std_radps=0.2 * schema.DEG_TO_RAD))
+    previous = LocalizerConfig(model_offset_share=1.0, model_omega_var_inflation=None, cal_model_bias_tau_s=5.0,
+                               cal_model_bias_std_radps=0.2 * schema.DEG_TO_RAD)
+    pipeline, outs = replay(setup, [walk], "spoof", frames=gnss_frames, localizer_config=previous)
     k = np.array([int(round(o.t_s / schema.DT_S)) for o in outs])
     err = np.hypot(*(np.array([o.x[:2] for o in outs]) - drive.pose_gt[np.minimum(k, len(drive) - 1), :2]).T)
     t = np.array([o.t_s for o in outs])
@@ -216,7 +216,7 @@ def test_a_gnss_walking_away_is_refused_and_the_status_says_why(setup, clean):
     assert pipeline.localizer.filter.gnss_check.summary()["fixes_refused"] > 150
     # and it matters: without the consistency check the filter follows the walk
     _, followed = replay(setup, [walk], "spoof_off", frames=gnss_frames,
-                         localizer_config=LocalizerConfig(gnss_consistency=False, model_offset_share=1.0))
+                         localizer_config=replace(previous, gnss_consistency=False))
     k = np.array([int(round(o.t_s / schema.DT_S)) for o in followed])
     err_off = np.hypot(*(np.array([o.x[:2] for o in followed]) - drive.pose_gt[np.minimum(k, len(drive) - 1), :2]).T)
     assert err_off[-1] > 20.0
