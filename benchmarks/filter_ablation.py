@@ -40,7 +40,7 @@ import numpy as np
 
 from prml2_edge.bench.machine import machine_info
 from prml2_edge.data.datasets import load_dataset
-from prml2_edge.evaluation.metrics import coverage, dr_summary, paired_comparison
+from prml2_edge.evaluation.metrics import coverage, dr_summary, paired_comparison, paired_text
 from prml2_edge.evaluation.models import RecordingModel, ReplayModel
 from prml2_edge.evaluation.protocol import (
     DEPLOYMENT_PREROLL_S,
@@ -172,9 +172,7 @@ def markdown(doc: dict) -> list[str]:
            "|---|---|---|---:|---|---|---:|"]
     for key, rows in doc["splits"].items():
         for name, r in rows.items():
-            p = r["paired_vs_osd"]
-            paired = "–" if p is None else (f"{p['rmse_diff_mean_m']:+.2f} [{p['rmse_diff_ci95_m'][0]:+.2f}, "
-                                             f"{p['rmse_diff_ci95_m'][1]:+.2f}]")
+            paired = paired_text(r["paired_vs_osd"])
             cov = r["coverage_pct"]
             c = f"{cov['coverage_2sigma_pct']:.0f} / {cov['coverage_3sigma_pct']:.0f}" if cov else "–"
             out.append(f"| {key} | {name} | {r['rmse_mean_m']:.2f} ({r['ratio_to_osd']:.2f}×) | "

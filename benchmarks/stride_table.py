@@ -27,7 +27,7 @@ import numpy as np
 from prml2_edge import schema
 from prml2_edge.bench.machine import machine_info
 from prml2_edge.data.datasets import load_dataset
-from prml2_edge.evaluation.metrics import coverage, dr_summary, paired_comparison
+from prml2_edge.evaluation.metrics import coverage, dr_summary, paired_comparison, paired_text
 from prml2_edge.evaluation.models import RecordingModel, ReplayModel
 from prml2_edge.evaluation.protocol import ModelSpec, build_model, run_window, split_tasks
 from prml2_edge.progress import Progress
@@ -92,9 +92,7 @@ def markdown(doc: dict) -> list[str]:
            "|---|---:|---:|---:|---:|---|---|---:|"]
     for split, rows in doc["splits"].items():
         for k, r in rows.items():
-            p = r["paired_vs_k1"]
-            paired = "–" if p is None else (f"{p['rmse_diff_mean_m']:+.2f} [{p['rmse_diff_ci95_m'][0]:+.2f}, "
-                                             f"{p['rmse_diff_ci95_m'][1]:+.2f}]")
+            paired = paired_text(r["paired_vs_k1"])
             c = r["coverage_pct"]
             cost = "–" if r["infer_ms_per_s"] is None else f"{r['infer_ms_per_s']:.1f}"
             out.append(f"| {split} | {k} | {r['inferences_per_s']:g} | {r['rmse_mean_m']:.2f} | "

@@ -105,3 +105,12 @@ def paired_comparison(reference: Sequence[WindowResult], other: Sequence[WindowR
         "rmse_ratio": float(a.mean() / max(b.mean(), 1e-12)), "rmse_ratio_ci95": [float(rlo), float(rhi)],
         "reference_wins": float(np.mean(a < b)),
     }
+
+
+def paired_text(p: dict | None) -> str:
+    """A :func:`paired_comparison` result as ``+0.12 [-0.30, +0.55]`` (mean difference and its 95 % interval, m);
+    ``–`` for none."""
+    if p is None:
+        return "–"
+    lo, hi = p["rmse_diff_ci95_m"]
+    return f"{p['rmse_diff_mean_m']:+.2f} [{lo:+.2f}, {hi:+.2f}]"
