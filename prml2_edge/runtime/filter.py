@@ -44,6 +44,8 @@ _REAR = np.array([_SIG["wheel_speed_rl_mps"].index, _SIG["wheel_speed_rr_mps"].i
 _WHEELS = np.array(schema.WHEEL_SPEED_INDICES)
 _RL, _RR = (int(i) for i in _REAR)
 _WHEEL_LIST = [int(i) for i in _WHEELS]
+_YAW, _OMEGA, _VX = EkfState.YAW.start, EkfState.OMEGA_Z.start, EkfState.VEL.start
+_RESOLUTION_WINDOW = 200  # steps between distinct yaw-rate readings kept for the resolution estimate
 
 
 def _rear_speed(values: np.ndarray, valid: np.ndarray) -> float | None:
@@ -52,8 +54,6 @@ def _rear_speed(values: np.ndarray, valid: np.ndarray) -> float | None:
     if not (valid[_RL] and valid[_RR]):
         return None
     return (float(values[_RL]) + float(values[_RR])) / 2
-_YAW, _OMEGA, _VX = EkfState.YAW.start, EkfState.OMEGA_Z.start, EkfState.VEL.start
-_RESOLUTION_WINDOW = 200  # steps between distinct yaw-rate readings kept for the resolution estimate
 
 
 def yaw_cue_var(config, resolution_radps: float) -> float:
