@@ -4,7 +4,7 @@ The drive (seeded simulator) is encoded to a candump log and replayed, in one ru
 
 * **streaming**, exactly as ``prml2 replay`` does: :class:`~prml2_edge.runtime.source.LogReplay` (a
   feeder thread and a python-can virtual bus) -> :func:`~prml2_edge.runtime.pipeline.run_source` ->
-  :class:`Pipeline` with the edge model, stride 1 (the reference);
+  :class:`Pipeline` with the edge model at ``--stride`` (default: the runtime's) (the reference);
 * **offline**, as ``prml2 replay --batch`` does (:func:`~prml2_edge.runtime.offline.run_offline`), fp32
   with 2 inference worker processes and in-thread, and with the int8 graph (``bench_models.py``);
   the z RMSE against the drive's ground truth of each precision is reported with the change against fp32.
@@ -32,6 +32,7 @@ import numpy as np
 from prml2_edge.bench.latency import build_pipeline, open_session_model
 from prml2_edge.bench.machine import load_average, load_label, machine_info
 from prml2_edge.bench.replay_input import simulate_log
+from prml2_edge.config import DEFAULT_STRIDE
 from prml2_edge.runtime.offline import run_offline
 from prml2_edge.runtime.pipeline import Pipeline, run_source
 from prml2_edge.runtime.source import LogReplay
@@ -135,10 +136,11 @@ def _load_fields(load0: list[float] | None) -> dict:
 
 
 def offline_once(log_path: Path, pose, duration_s: float, model_path: str, threads: int, workers: int,
-                 rss_every: int, label: str) -> tuple[dict, _ZSink]:
+                 rss_every: int, label: str, stride: int = DEFAULT_STRIDE) -> tuple[dict, _ZSink]:
     """One offline replay (``prml2 replay --batch``): throughput, time per stage, RSS."""
     zs = _ZSink()
-    pipeline = Pipeline.build(model=open_session_model(model_path, threads=threads), initial_pose=pose, sinks=[zs])
+    pipeline = Pipeline.build(model=open_session_model(model_path, threads=threads), initial_pose=pose, sinks=[zs],
+                              stride=stride)
     progress = _RssProgress(rss_every)
     rss0 = rss_mib()
     load0 = load_average()
@@ -153,7 +155,7 @@ def offline_once(log_path: Path, pose, duration_s: float, model_path: str, threa
     growth = rss[-1] - half
     per_row = {k: 1e3 * v / max(res.rows, 1) for k, v in res.timing_s.items()}
     return {
-        "mode": label, "threads": threads, "workers": workers, "stride": 1, "frames_received": res.frames,
+        "mode": label, "threads": threads, "workers": workers, "stride": stride, "frames_received": res.frames,
         "source_error": res.problem, "rows": summ["rows"], "inferences": summ["inferences"],
         "frames_balanced": summ["frames"]["balanced"], "wall_s": wall_s, "x_realtime": duration_s / wall_s,
         "rows_per_s": summ["rows"] / wall_s, "per_row_ms": per_row, **_load_fields(load0),
@@ -164,9 +166,10 @@ def offline_once(log_path: Path, pose, duration_s: float, model_path: str, threa
     }, zs
 
 
-def replay_once(log_path: Path, pose, duration_s: float, model_path: str, threads: int, rss_every: int) -> dict:
+def replay_once(log_path: Path, pose, duration_s: float, model_path: str, threads: int, rss_every: int,
+                stride: int = DEFAULT_STRIDE) -> dict:
     """One replay of the whole log: throughput, where the time per row goes, RSS over the run."""
-    pipeline = build_pipeline(open_session_model(model_path, threads=threads), pose)
+    pipeline = build_pipeline(open_session_model(model_path, threads=threads), pose, stride=stride)
     progress = _RssProgress(rss_every)
     rss0 = rss_mib()
     load0 = load_average()
@@ -191,7 +194,7 @@ def replay_once(log_path: Path, pose, duration_s: float, model_path: str, thread
     half = rss[len(rss) // 2]
     growth = rss[-1] - half
     return {
-        "mode": "streaming", "threads": threads, "stride": 1, "frames_sent": sent, "frames_received": received,
+        "mode": "streaming", "threads": threads, "stride": stride, "frames_sent": sent, "frames_received": received,
         "source_error": error,
         "rows": summ["rows"], "inferences": summ["inferences"], "frames_balanced": summ["frames"]["balanced"],
         "wall_s": wall_s, "x_realtime": duration_s / wall_s, "rows_per_s": summ["rows"] / wall_s,
@@ -284,6 +287,43 @@ def batch_calls(model_path: str, log_path: Path, threads_list: list[int], sizes=
     return out
 
 
+def _run_modes(args, modes: list[str], bm: dict, log_path: Path, pose, duration_s: float, z_gt: np.ndarray):
+    """Every replay mode asked for, in order: (runs, z sinks by offline mode, the batched-call result or None)."""
+    runs, zsinks, batch = [], {}, None
+    for mode in modes:
+        if mode == "streaming":
+            for n in [int(t) for t in args.threads.split(",")]:
+                r = replay_once(log_path, pose, duration_s, bm["fp32"], n, args.rss_every, args.stride)
+                runs.append(r)
+                rss = r["rss"]
+                print(f"streaming, {n} thread(s): replayed {args.minutes:g} min ({r['frames_sent']} frames, "
+                      f"{r['rows']} rows) in {r['wall_s']:.1f} s: {r['x_realtime']:.1f} x real time; RSS "
+                      f"{rss['start_mib']:.0f} -> {rss['half_mib']:.0f} -> {rss['end_mib']:.0f} MiB; CPU "
+                      f"{r['cpu_ms_per_driven_s']:.1f} ms per driven s (2 idle cores would give "
+                      f"{r['x_realtime_2_idle_cores_from_cpu']:.1f} x); per row [ms]: "
+                      + ", ".join(f"{k} {v:.3f}" for k, v in r["per_row_ms"].items()) + f"; {r['load']}")
+        elif mode.startswith("offline"):
+            workers = int(mode.removeprefix("offline").split("-")[0])
+            precision = "int8" if mode.endswith("-int8") else "fp32"
+            r, zs = offline_once(log_path, pose, duration_s, bm[precision], 1, workers, args.rss_every, mode,
+                                 args.stride)
+            r["precision"] = precision
+            r["z"] = z_rmse(zs, z_gt)
+            zsinks[mode] = zs
+            runs.append(r)
+            rss = r["rss"]
+            print(f"{mode} ({precision}, {workers} worker(s)): {r['wall_s']:.1f} s: {r['x_realtime']:.1f} x real time; "
+                  f"RSS {rss['start_mib']:.0f} -> {rss['end_mib']:.0f} MiB (peak {rss['peak_mib']:.0f}; worker "
+                  f"processes {rss['workers_peak_mib']:.0f} MiB); CPU {r['cpu_ms_per_driven_s']:.1f} ms per driven s "
+                  f"(2 idle cores would give {r['x_realtime_2_idle_cores_from_cpu']:.1f} x); "
+                  "per row [ms]: " + ", ".join(f"{k} {v:.3f}" for k, v in r["per_row_ms"].items()) + f"; {r['load']}")
+        elif mode == "batch":
+            batch = batch_calls(bm["fp32"], log_path, [1, 2])
+        else:
+            raise SystemExit(f"unknown mode {mode!r}")
+    return runs, zsinks, batch
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--minutes", type=float, default=10.0, help="drive length [min]")
@@ -293,6 +333,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="comma separated: streaming, offline2 / offline1 (fp32, 2 worker processes / in-thread), "
                          "offline2-int8, batch (the model alone, batched calls)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--stride", type=int, default=DEFAULT_STRIDE,
+                    help=f"a new model window every N 50 Hz steps (default {DEFAULT_STRIDE}, the runtime's)")
     ap.add_argument("--checkpoint", default=None, help="trained checkpoint to export and use (see bench_models.py)")
     ap.add_argument("--rss-every", type=int, default=5000, help="frames between RSS samples")
     ap.add_argument("--out", default=str(HERE / "results" / "replay.json"))
@@ -310,37 +352,7 @@ def main(argv: list[str] | None = None) -> int:
     from prml2_edge.data.simulate import simulate_drive
 
     z_gt = simulate_drive(args.minutes, 1.0, args.seed, "mixed").z_gt  # the drive simulate_log encoded
-    runs, zsinks, batch = [], {}, None
-    for mode in modes:
-        if mode == "streaming":
-            for n in [int(t) for t in args.threads.split(",")]:
-                r = replay_once(log_path, pose, duration_s, bm["fp32"], n, args.rss_every)
-                runs.append(r)
-                rss = r["rss"]
-                print(f"streaming, {n} thread(s): replayed {args.minutes:g} min ({r['frames_sent']} frames, "
-                      f"{r['rows']} rows) in {r['wall_s']:.1f} s: {r['x_realtime']:.1f} x real time; RSS "
-                      f"{rss['start_mib']:.0f} -> {rss['half_mib']:.0f} -> {rss['end_mib']:.0f} MiB; CPU "
-                      f"{r['cpu_ms_per_driven_s']:.1f} ms per driven s (2 idle cores would give "
-                      f"{r['x_realtime_2_idle_cores_from_cpu']:.1f} x); per row [ms]: "
-                      + ", ".join(f"{k} {v:.3f}" for k, v in r["per_row_ms"].items()) + f"; {r['load']}")
-        elif mode.startswith("offline"):
-            workers = int(mode.removeprefix("offline").split("-")[0])
-            precision = "int8" if mode.endswith("-int8") else "fp32"
-            r, zs = offline_once(log_path, pose, duration_s, bm[precision], 1, workers, args.rss_every, mode)
-            r["precision"] = precision
-            r["z"] = z_rmse(zs, z_gt)
-            zsinks[mode] = zs
-            runs.append(r)
-            rss = r["rss"]
-            print(f"{mode} ({precision}, {workers} worker(s)): {r['wall_s']:.1f} s: {r['x_realtime']:.1f} x real time; "
-                  f"RSS {rss['start_mib']:.0f} -> {rss['end_mib']:.0f} MiB (peak {rss['peak_mib']:.0f}; worker "
-                  f"processes {rss['workers_peak_mib']:.0f} MiB); CPU {r['cpu_ms_per_driven_s']:.1f} ms per driven s "
-                  f"(2 idle cores would give {r['x_realtime_2_idle_cores_from_cpu']:.1f} x); "
-                  "per row [ms]: " + ", ".join(f"{k} {v:.3f}" for k, v in r["per_row_ms"].items()) + f"; {r['load']}")
-        elif mode == "batch":
-            batch = batch_calls(bm["fp32"], log_path, [1, 2])
-        else:
-            raise SystemExit(f"unknown mode {mode!r}")
+    runs, zsinks, batch = _run_modes(args, modes, bm, log_path, pose, duration_s, z_gt)
     fp32 = next((r for r in runs if r.get("precision") == "fp32"), None)
     for r in runs:
         if r.get("precision") == "int8" and fp32 is not None:

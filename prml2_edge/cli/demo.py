@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from prml2_edge.config import DEFAULT_STRIDE
+
 HELP = "Replay a built-in simulated drive through the runtime and report pose and latency."
 NEEDS: tuple[tuple[str, str], ...] = ()
 
@@ -16,7 +18,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="GNSS fixes for the first N seconds, then an outage (default 10)")
     parser.add_argument("--seed", type=int, default=7, help="simulation seed (default 7)")
     parser.add_argument("--model", metavar="PATH", help="ONNX model (default: the shipped model)")
-    parser.add_argument("--stride", type=int, default=1, help="a new model window every N steps (default 1)")
+    parser.add_argument("--stride", type=int, default=DEFAULT_STRIDE,
+                        help=f"a new model window every N steps (default {DEFAULT_STRIDE})")
     parser.add_argument("--threads", type=int, default=1, help="ONNX Runtime intra-op threads (default 1)")
     parser.add_argument("--no-plot", action="store_true", help="skip the PNG (drawn with matplotlib, the plot extra)")
     parser.add_argument("--summary-json", metavar="PATH", help="write the summary and metrics as JSON")

@@ -18,7 +18,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "PRML2*=runs/onnx/prml2_star.onnx PRML2=export/default/prml2_edge.onnx)")
     parser.add_argument("--out", required=True, metavar="REPORT", help="output folder (report.md, metrics.json, PNG, "
                                                                       "tum/)")
-    parser.add_argument("--stride", type=int, default=1, help="streaming stride [samples] (method.md; default 1)")
+    parser.add_argument("--stride", type=int, default=1,
+                        help="streaming stride [samples] (default 1: method.md's protocol; the runtime's default is 5)")
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     parser.add_argument("--ablation", metavar="NAME", default=None,
                         help="ONNX model for the Table 3 ablation (default: the one named PRML2, if any)")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from prml2_edge.config import DEFAULT_STRIDE
+
 HELP = "Replay many recorded CAN logs on a Dask cluster (local by default), one task per log, resumable."
 NEEDS: tuple[tuple[str, str], ...] = (("distributed", "fleet"),)
 
@@ -22,7 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--dbc", metavar="PATH", help="DBC file (default: the one the map names)")
     g.add_argument("--model", metavar="PATH", help="ONNX model (default: the shipped model)")
     g.add_argument("--mu", type=float, default=1.0, help="road friction for the physics guard (default 1.0)")
-    g.add_argument("--stride", type=int, default=1, help="a new model window every N 50 Hz steps (default 1)")
+    g.add_argument("--stride", type=int, default=DEFAULT_STRIDE,
+                   help=f"a new model window every N 50 Hz steps (default {DEFAULT_STRIDE})")
     g.add_argument("--stale-periods", type=float, default=3.0, help="signal staleness in periods (default 3)")
     g.add_argument("--no-calibration", action="store_true", help="the paper's filter (no calibration states)")
     g.add_argument("--initial-pose", metavar="X,Y,HEADING_DEG",

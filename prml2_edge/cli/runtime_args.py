@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from prml2_edge.config import DEFAULT_STRIDE
+
 
 def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     """Options every runtime command shares (map, DBC, model, guard, initial pose, sinks)."""
@@ -18,7 +20,7 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--spinning", action="store_true",
                    help="with --threads >= 2: ONNX Runtime worker threads busy-wait between parallel sections "
                         "instead of sleeping (tighter p99 latency, more CPU)")
-    g.add_argument("--stride", type=int, help="a new model window every N 50 Hz steps (default 1)")
+    g.add_argument("--stride", type=int, help=f"a new model window every N 50 Hz steps (default {DEFAULT_STRIDE})")
     g.add_argument("--providers", metavar="LIST",
                    help="execution providers in order, comma separated (default tensorrt,cuda,cpu)")
     g.add_argument("--stale-periods", type=float,

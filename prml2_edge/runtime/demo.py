@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from prml2_edge import schema
+from prml2_edge.config import DEFAULT_STRIDE
 from prml2_edge.dead_reckoning import trajectory_metrics
 from prml2_edge.runtime.pipeline import MemorySink, Pipeline, run_source
 from prml2_edge.runtime.sinks import JsonlSink
@@ -96,8 +97,8 @@ def truth_lines(m: dict) -> list[str]:
 
 
 def run_demo(out_dir: str | Path, model: str | Path | None = None, seconds: float = 90.0,
-             gnss_seconds: float = 10.0, seed: int = 7, mu: float = 1.0, family: str = "mixed", stride: int = 1,
-             threads: int = 1, plot: bool = True, progress=None) -> DemoResult:
+             gnss_seconds: float = 10.0, seed: int = 7, mu: float = 1.0, family: str = "mixed",
+             stride: int = DEFAULT_STRIDE, threads: int = 1, plot: bool = True, progress=None) -> DemoResult:
     """Simulate, encode, replay and compare; files go to ``out_dir`` (log, JSON lines, PNG)."""
     from prml2_edge.can.encode import encode_drive_to_log
     from prml2_edge.data.simulate import simulate_drive

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from prml2_edge import schema
+from prml2_edge.config import DEFAULT_STRIDE
 from prml2_edge.ekf.numpy_ekf import CalibrationNoise, CalibrationStd, StepStatus, default_process_noise, wrap_angle
 from prml2_edge.runtime.estimator import Estimate, Estimator, Model
 from prml2_edge.runtime.filter import PoseFilter
@@ -35,7 +36,7 @@ __all__ = ["LocalizerConfig", "Model", "StepOutput", "StreamingLocalizer", "Traj
 class LocalizerConfig:
     """Tunables of :class:`StreamingLocalizer` (SI units unless named otherwise)."""
 
-    stride: int = 1  # a new window every `stride` 50 Hz steps
+    stride: int = DEFAULT_STRIDE  # a new window every `stride` 50 Hz steps (config.py says how it was chosen)
     mu: float = 1.0  # road friction for the physics guard (<= 0.5: low-mu limits)
     # Outputs of a window whose rows had an invalid signal in more than this fraction are not used:
     # a dropout of d rows costs the model until at most fraction * L of them are left in the window.

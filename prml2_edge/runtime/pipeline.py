@@ -23,6 +23,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.can.signal_map import SignalMap, load_map_and_dbc, resolve_map
+from prml2_edge.config import DEFAULT_STRIDE
 from prml2_edge.errors import ConfigError
 from prml2_edge.runtime.assembler import Assembler
 from prml2_edge.runtime.decode import FrameDecoder
@@ -144,7 +145,7 @@ class Pipeline:
     def build(cls, map: str | Path = "prml2_onboard", dbc: str | Path | None = None,
               model: str | Path | OnnxModel | None = None, threads: int = 1, providers: Sequence[str] = ("cpu",),
               spinning: bool = False,
-              stride: int = 1, mu: float = 1.0, stale_periods: float = 3.0,
+              stride: int = DEFAULT_STRIDE, mu: float = 1.0, stale_periods: float = 3.0,
               initial_pose: InitialPose | None = None, sinks: Sequence = (),
               localizer_config: LocalizerConfig | None = None, trt_cache_dir: str = "~/.cache/prml2/trt",
               trt_fp16: bool = False, calibration: bool = True, calibration_file: str | Path | None = None,

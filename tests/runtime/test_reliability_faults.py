@@ -319,7 +319,7 @@ def test_non_finite_model_output_means_predict_only_then_recovery(setup, clean, 
     first = schema.WINDOW_LEN - 1  # row of the first inference
     k0, k1 = int(T0 / DT), int(T0 / DT) + 50
     model.session = _FlakySession(model.session, k0 - first, k1 - first)
-    run = run_faults(setup, [], "nanmodel", model=model)
+    run = run_faults(setup, [], "nanmodel", model=model, stride=1)  # one session call per row: call i is row first + i
     check_common(run, setup[1])
     used = np.array([o.model_used for o in run.outs])
     status = np.array([o.status for o in run.outs])

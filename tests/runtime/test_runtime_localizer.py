@@ -97,7 +97,7 @@ def test_broken_model_output_means_predict_only_never_an_exception(tmp_path, dri
     bad = OnnxModel(make_kinematic_model(tmp_path / "nan.onnx", bias=[0, 0, 0, 0, np.nan]))
     loc = StreamingLocalizer(bad)
     traj = loc.run_arrays(drive.onboard[:300], gt_state(drive, L - 1), start_index=L - 1)
-    assert not traj.model_used.any() and loc.n_inference_failures == 300 - L + 1
+    assert not traj.model_used.any() and loc.n_inference_failures == (300 - L) // loc.config.stride + 1
     assert (traj.status[L:] == PoseStatus.PREDICT_ONLY).all() and np.isfinite(traj.x[L - 1:]).all()
 
 
@@ -130,8 +130,9 @@ def test_physics_guard_bounds_what_the_filter_consumes(tmp_path, drive):
     w = kinematic_weights()
     w[:, schema.Z.V_X] *= 4.0  # a model that overestimates speed 4x: up to ~80 m/s
     # calibration off: the raw wheel-speed cue would pull v_x back on its own; this isolates the guard
+    # stride 1: a prediction per row, so the guard's verdict can be checked row by row
     loc = StreamingLocalizer(OnnxModel(make_kinematic_model(tmp_path / "fast.onnx", weights=w)),
-                             LocalizerConfig(calibration=False))
+                             LocalizerConfig(calibration=False, stride=1))
     traj = loc.run_arrays(drive.onboard, gt_state(drive, L - 1), start_index=L - 1)
     fast = 4.0 * drive.onboard[L:, 5:9].mean(axis=1) > schema.V_MAX_MPS
     assert fast.any() and traj.guard_fired[L:][fast].all() and not traj.guard_fired[L:][~fast].any()

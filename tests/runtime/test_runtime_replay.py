@@ -11,6 +11,7 @@ from runtime_models import make_kinematic_model
 
 from prml2_edge import schema
 from prml2_edge.can.encode import encode_drive_to_log
+from prml2_edge.config import DEFAULT_STRIDE
 from prml2_edge.data.simulate import simulate_drive
 from prml2_edge.runtime.demo import trajectory_metrics
 from prml2_edge.runtime.initial_pose import InitialPose
@@ -64,7 +65,8 @@ def test_replayed_drive_tracks_ground_truth_and_accounts_for_every_frame(encoded
     assert m["distance_m"] > 150.0
     assert m["drift_pct"] < 5.0 and m["rmse_m"] < 10.0, m
     lat = pipeline.latency.summary()
-    assert lat["end_to_end"]["count"] == len(drive) and lat["infer"]["count"] == len(drive) - schema.WINDOW_LEN + 1
+    assert lat["end_to_end"]["count"] == len(drive) and lat["infer"]["count"] == \
+        (len(drive) - schema.WINDOW_LEN) // DEFAULT_STRIDE + 1
 
 
 @pytest.mark.parametrize("suffix", [".asc", ".blf", ".csv", ".trc"])
