@@ -75,12 +75,13 @@ def write_fixes(drive, path: Path, seconds: float, std_m: float, heading_std_deg
     return n
 
 
-def replay_cli(log: Path, csv: Path, fixes: Path, calibration: bool) -> dict:
+def replay_cli(log: Path, csv: Path, fixes: Path, calibration: bool, stride: int | None = None) -> dict:
     """``prml2 replay LOG --gnss FIXES --truth CSV`` in this process; its summary JSON."""
     from prml2_edge.cli.main import main as prml2
 
     out = log.with_suffix(".cal.json" if calibration else ".ref.json")
     argv = ["replay", str(log), "--gnss", str(fixes), "--truth", str(csv), "--summary-json", str(out)]
+    argv += [] if stride is None else ["--stride", str(stride)]
     with contextlib.redirect_stdout(io.StringIO()):
         rc = prml2(argv + ([] if calibration else ["--no-calibration"]))
     s = json.loads(out.read_text())
@@ -105,7 +106,7 @@ def highway_case(args) -> int:
         write_drive_csv(drive, csv)
         encode_drive_to_log(drive, log)
         n_fixes = write_fixes(drive, fixes, args.gnss_s, args.gnss_std_m, 1.0, seed)
-        on, off = replay_cli(log, csv, fixes, True), replay_cli(log, csv, fixes, False)
+        on, off = replay_cli(log, csv, fixes, True, args.stride), replay_cli(log, csv, fixes, False, args.stride)
         est = on["truth"].get("calibration_at_outage", {}).get("yaw_rate_offset_dps", math.nan)
         rows.append({"car": car, "seed": seed, "fixes": n_fixes, "calibrated": on, "reference": off,
                      "yaw_offset_estimate_dps": est, "yaw_offset_error_dps": est - args.yaw_offset_dps})
@@ -123,13 +124,14 @@ def highway_case(args) -> int:
                                                                     for r in rows]))}
     doc = {"started": started, "machine": machine_info(), "case": "highway", "args": vars(args), "cars": rows,
            "summary": summary}
-    OUT_HIGHWAY.parent.mkdir(parents=True, exist_ok=True)
-    OUT_HIGHWAY.write_text(json.dumps(doc, indent=1, default=float))
+    out = Path(args.out or OUT_HIGHWAY)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=1, default=float))
     print(f"all cars: {summary['refused_total']} genuine fixes refused (target 0); yaw offset within "
           f"{summary['max_yaw_offset_error_dps']:.3f} °/s (target 0.1); drift mean {summary['mean_drift_pct']:.2f} %, "
           f"max {summary['max_drift_pct']:.2f} % (target 1.5), without calibration "
           f"{summary['mean_drift_pct_without_calibration']:.2f} %")
-    print(f"wrote {OUT_HIGHWAY}")
+    print(f"wrote {out}")
     return 0
 
 
@@ -143,6 +145,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--gnss-std-m", type=float, default=1.5, help="--case highway: fix noise per axis [m]")
     ap.add_argument("--yaw-offset-dps", type=float, default=-0.4)
     ap.add_argument("--wheel-scale-pct", type=float, default=1.0)
+    ap.add_argument("--stride", type=int, default=None, help="--case highway: the model every N steps (default: the "
+                                                              "runtime's)")
+    ap.add_argument("--out", default=None,
+                    help="JSON path (default benchmarks/results/calibration_replay[_highway].json)")
     args = ap.parse_args(argv)
     if args.case == "highway":
         return highway_case(args)
@@ -175,8 +181,9 @@ def main(argv: list[str] | None = None) -> int:
     summary["calibrated"]["wheel_scale_estimate_pct"] = float(np.mean([c["wheel_scale_pct"] for c in cal]))
     doc = {"started": started, "machine": machine_info(), "args": vars(args), "drives": rows, "summary": summary,
            "truth": {"yaw_offset_dps": args.yaw_offset_dps, "wheel_scale_pct": args.wheel_scale_pct}}
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(doc, indent=1, default=float))
+    out = Path(args.out or OUT)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=1, default=float))
     s, r = summary["calibrated"], summary["reference"]
     print(f"mean over {len(rows)} drives: drift {s['drift_pct']:.2f} % against {r['drift_pct']:.2f} % without "
           f"calibration; RMSE {s['rmse_m']:.1f} against {r['rmse_m']:.1f} m; coverage 1/2/3σ "
@@ -185,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
           f"estimates: yaw offset {s['yaw_offset_estimate_dps']:+.3f} °/s (truth {args.yaw_offset_dps:+.3f}), "
           f"wheel scale {s['wheel_scale_estimate_pct']:+.2f} % (truth {args.wheel_scale_pct:+.2f}, per-wheel "
           f"slip and the rear axle's share make the effective value a little lower)")
-    print(f"wrote {OUT}")
+    print(f"wrote {out}")
     return 0
 
 

@@ -11,7 +11,10 @@ so each row differs from the next by one choice only, on the same windows. Varia
 * ``model omega_z ignored``: the same with the model's omega_z variance times 1e8 (gyro and wheels carry the yaw);
 * ``+ offset share 0``: the model's omega_z does not carry the offset, so gyro minus model measures it;
 * ``+ slow error 0.3 deg/s, 60 s``: the model's slow error state as measured on validation;
-* ``+ fast part inflated 5e4``: step by step the gyro carries the yaw rate (the runtime's default).
+* ``+ fast part inflated 5e4``: step by step the gyro carries the yaw rate;
+* ``+ coarse gyro: metadata inflation``: next to a CAN yaw rate measured coarse (>= 0.2 deg/s resolution) the
+  model's omega_z variance only times the metadata's 5 s factor: there the quantisation error is slow and the
+  model carries the yaw rate step by step (the runtime's default).
 
 Every calibrated variant starts from the standstill offset the OSD baseline subtracts (a car's calibration file).
 The OSD baseline is tuned on the validation split (``tune_osd``) and is the reference of every ratio and of the
@@ -57,11 +60,12 @@ HERE = Path(__file__).resolve().parent
 OUT = HERE / "results" / "filter_ablation.json"
 OSD = "OSD-Baseline"
 DEG = np.pi / 180.0
-DEFAULT = "+ fast part inflated 5e4 (the runtime's default)"
+DEFAULT = "+ coarse gyro: metadata inflation (the runtime's default)"
 
 
+NO_COARSE = ("coarse_yaw_resolution_radps", float("inf"))  # the coarse-gyro inflation off
 PREVIOUS = (("model_offset_share", 1.0), ("cal_model_bias_tau_s", 5.0),
-            ("cal_model_bias_std_radps", 0.2 * DEG), ("model_omega_var_inflation", None))
+            ("cal_model_bias_std_radps", 0.2 * DEG), ("model_omega_var_inflation", None), NO_COARSE)
 
 
 def variants(model: str) -> dict[str, ModelSpec]:
@@ -77,7 +81,8 @@ def variants(model: str) -> dict[str, ModelSpec]:
             "+ slow error 0.3 °/s, 60 s": replace(cal, filter=tuple({**prev, "model_offset_share": 0.0,
                                                                     "cal_model_bias_tau_s": 60.0,
                                                                     "cal_model_bias_std_radps": 0.3 * DEG}.items())),
-            "+ fast part inflated 5e4 (the runtime's default)": cal}
+            "+ fast part inflated 5e4": replace(cal, filter=(NO_COARSE,)),
+            DEFAULT: cal}
 
 
 def _one_task(args):

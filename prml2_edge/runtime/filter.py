@@ -85,6 +85,7 @@ class PoseFilter:
         # a restored calibration (cal (3,), cov (3, 3)) that every start begins from; None: the prior
         self.calibration0: tuple[np.ndarray, np.ndarray] | None = None
         self.omega_var_inflation = 1.0  # on the model's omega_z variance when the raw cues are fused (localizer.py)
+        self.omega_var_inflation_coarse = 1.0  # the same next to a coarse CAN yaw rate, once measured coarse
         self.reset()
 
     def reset(self) -> None:
@@ -102,6 +103,7 @@ class PoseFilter:
         self._yaw_steps: collections.deque[float] = collections.deque(maxlen=_RESOLUTION_WINDOW)
         self.yaw_resolution_radps = float(self.config.yaw_cue_resolution_radps)
         self._yaw_cue_var = self._yaw_var()
+        self._resolution_measured = False
         self.n_gnss_rejected = 0  # fixes refused by the innovation gate
         self.n_gnss_suspect = 0  # fixes not fused because the odometry contradicts the fix stream
         self.n_gnss_init_rejected = 0  # first fixes that the next fix or the wheels contradicted
@@ -158,9 +160,12 @@ class PoseFilter:
         # and the yaw-rate offset it shares with the CAN yaw rate would learn the wrong value
         skip_model = still and self.config.standstill_skips_model
         z_var = est.z_var
-        if self.calibrated and z_var is not None and self.omega_var_inflation != 1.0:
+        infl = self.omega_var_inflation
+        if self._resolution_measured and self.yaw_resolution_radps >= self.config.coarse_yaw_resolution_radps:
+            infl = self.omega_var_inflation_coarse
+        if self.calibrated and z_var is not None and infl != 1.0:
             z_var = z_var.copy()
-            z_var[schema.Z.OMEGA_Z] *= self.omega_var_inflation
+            z_var[schema.Z.OMEGA_Z] *= infl
         ekf_status = self.ekf.step(None if skip_model else est.z, None if skip_model else z_var)
         model_used = ekf_status is StepStatus.SUCCESS
         cues = standstill = False
@@ -239,6 +244,7 @@ class PoseFilter:
         self._yaw_steps.append(abs(yaw - last))
         if len(self._yaw_steps) == _RESOLUTION_WINDOW:
             self.yaw_resolution_radps = float(np.percentile(self._yaw_steps, 10))
+            self._resolution_measured = True
             self._yaw_steps.clear()
             self._yaw_cue_var = self._yaw_var()
 

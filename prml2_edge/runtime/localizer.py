@@ -100,6 +100,12 @@ class LocalizerConfig:
     # uncertainty (chosen on the validation split, issue 26: benchmarks/filter_ablation.py). None: the model's
     # metadata (error_model, the 5 s mean-error ratio measured at export), else 1.
     model_omega_var_inflation: float | None = 5.0e4
+    # ... except next to a coarse CAN yaw rate (its resolution, measured online, at least coarse_yaw_resolution):
+    # quantisation error is slow, so there the model's omega_z carries the yaw rate step by step, its variance
+    # times this (None: the metadata's 5 s factor). Until the resolution is measured the gyro counts as fine.
+    # Chosen on validation (issue 26, docs/evaluation.md); inf as the threshold turns it off.
+    model_omega_var_inflation_coarse: float | None = None
+    coarse_yaw_resolution_radps: float = 0.2 * schema.DEG_TO_RAD
 
     def __post_init__(self) -> None:
         if self.stride < 1:
@@ -208,11 +214,12 @@ class Trajectory:
         return out
 
 
-def omega_var_inflation(model: Model, config: LocalizerConfig) -> float:
-    """The factor on the model's omega_z variance next to the raw cues: the config's, else the model's metadata
-    (``error_model.var_inflation``), else 1."""
-    if config.model_omega_var_inflation is not None:
-        value = float(config.model_omega_var_inflation)
+def omega_var_inflation(model: Model, config: LocalizerConfig, coarse: bool = False) -> float:
+    """The factor on the model's omega_z variance next to the raw cues (``coarse``: next to a coarse CAN yaw rate):
+    the config's, else the model's metadata (``error_model.var_inflation``), else 1."""
+    setting = config.model_omega_var_inflation_coarse if coarse else config.model_omega_var_inflation
+    if setting is not None:
+        value = float(setting)
     else:
         error_model = getattr(getattr(model, "metadata", None), "error_model", None) or {}
         value = float((error_model.get("var_inflation") or [1.0] * schema.NUM_STATES)[schema.Z.OMEGA_Z])
@@ -252,6 +259,7 @@ class StreamingLocalizer:
         self.estimator = Estimator(model, cfg.stride, cfg.max_invalid_fraction, schema.accel_limit_mps2(cfg.mu))
         self.filter = PoseFilter(cfg, process_noise, initial_pose, self.dt_s)
         self.filter.omega_var_inflation = omega_var_inflation(model, cfg)
+        self.filter.omega_var_inflation_coarse = omega_var_inflation(model, cfg, coarse=True)
         self.reset()
 
     # the stages' parts that callers read or set (evaluation, the pipeline's summary)

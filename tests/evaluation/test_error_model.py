@@ -165,3 +165,30 @@ def test_a_calibrated_gyro_keeps_the_heading_when_the_model_has_a_slow_bias():
     follows the gyro (9 deg if it followed the model) and the offset stays."""
     heading, learned = _heading_error_dps(LocalizerConfig(), 0.3, restore=True)
     assert heading < 0.2 and abs(learned - 0.4) < 0.01, (heading, learned)
+
+
+def _coarse_gyro_heading_error_dps(cfg: LocalizerConfig) -> float:
+    """A 0.5 deg/s CAN yaw rate: for 5 s it toggles between 0 and 0.5 deg/s (the truth 0.25, and the resolution gets
+    measured), then reads 0 for 25 s while the car turns at 0.2 deg/s (quantisation error: slow, not white). The
+    model says the truth with 0.1 deg/s. Final heading error [deg]."""
+    onboard, x0 = _straight_with_gyro_offset(0.0, 30.0)
+    yaw = schema.SIGNAL_BY_NAME["yaw_rate_radps"].index
+    start = schema.WINDOW_LEN - 1
+    toggle = np.arange(len(onboard)) < start + int(5.0 / DT)
+    onboard[:, yaw] = np.where(toggle & (np.arange(len(onboard)) % 2 == 1), math.radians(0.5), 0.0)
+    truth = np.where(toggle, math.radians(0.25), math.radians(0.2))
+    rows = np.arange(start, len(onboard))  # stride 1: call i is row start + i
+    model = _SlowYawErrorModel(truth[rows] - onboard[rows, yaw], 249.0)
+    model.bias = StandstillBias(0.0, 0.0, 100)
+    traj = StreamingLocalizer(model, replace(cfg, stride=1)).run_arrays(onboard, x0, start_index=start)
+    heading_true = math.degrees(float(np.sum(truth[start + 1:]) * DT))
+    return abs(math.degrees(float(traj.x[-1, EkfState.YAW.start])) - heading_true)
+
+
+def test_next_to_a_coarse_gyro_the_model_carries_the_yaw_rate():
+    """Once the CAN yaw rate is measured coarse, the model's omega_z is inflated only by its metadata factor, so its
+    reading holds the heading where the quantised gyro is 0.2 deg/s off: about 3 deg after 30 s when, as next to a fine
+    gyro, the gyro carries the yaw rate step by step; under a third of that with the coarse-gyro inflation."""
+    coarse = _coarse_gyro_heading_error_dps(LocalizerConfig())
+    fine_rule = _coarse_gyro_heading_error_dps(LocalizerConfig(coarse_yaw_resolution_radps=math.inf))
+    assert fine_rule > 2.5 and coarse < 0.33 * fine_rule, (coarse, fine_rule)
