@@ -38,6 +38,13 @@ class TorchStep:
     x: np.ndarray
     inferred: bool
     bus_silent: bool = False
+    # what the pipeline reads off a step (runtime/pipeline.py ``_row``): it records the stage times itself
+    infer_ns: int = 0
+    guard_ns: int = 0
+    filter_ns: int = 0
+    degraded: bool = False
+    reasons: dict | None = None
+    substituted: np.ndarray | None = None
 
 
 class TorchEagerLocalizer:
@@ -56,11 +63,14 @@ class TorchEagerLocalizer:
         self.P: torch.Tensor | None = None
 
     def step(self, values: np.ndarray, valid: np.ndarray, t_s: float, gnss=None,
-             discontinuity: bool = False, bus_silent: bool = False) -> TorchStep:
+             discontinuity: bool = False, bus_silent: bool = False, substituted=None,
+             substitute_std=None) -> TorchStep:
+        """The runtime localiser's call (``StreamingLocalizer.step``); GNSS and substituted cues are not used."""
         all_valid = bool(np.all(valid))
         self.window.step(values, all_valid)
         z = z_var = None
         inferred = False
+        infer_ns = guard_ns = 0
         if self.window.full:
             t0 = time.perf_counter_ns()
             with torch.inference_mode():
@@ -76,8 +86,7 @@ class TorchEagerLocalizer:
             with torch.inference_mode():
                 mean, var = self.guard(mean, var)  # (1, 1, 5): the newest step, as the runtime guards it
                 z, z_var = mean[:, -1].double(), var[:, -1].double()  # (1, 5)
-            self.latency.add("infer", t1 - t0)
-            self.latency.add("guard", time.perf_counter_ns() - t1)
+            infer_ns, guard_ns = t1 - t0, time.perf_counter_ns() - t1
             inferred = True
         t_filter = time.perf_counter_ns()
         with torch.inference_mode():
@@ -90,8 +99,7 @@ class TorchEagerLocalizer:
                 if z is not None and all_valid:
                     self.x, self.P = ekf_torch.update(self.x, self.P, z, z_var)
             x = self.x[0].numpy().copy()
-        self.latency.add("filter", time.perf_counter_ns() - t_filter)
-        return TorchStep(t_s, x, inferred, bus_silent)
+        return TorchStep(t_s, x, inferred, bus_silent, infer_ns, guard_ns, time.perf_counter_ns() - t_filter)
 
 
 def torch_pipeline(model: Prml2Model, initial_pose: InitialPose, signal_map: str = "prml2_onboard",
