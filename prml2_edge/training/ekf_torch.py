@@ -48,7 +48,8 @@ def _z_index(device: torch.device) -> Tensor:
     """``schema.Z_TO_EKF_INDEX`` as a long tensor on ``device`` (cached)."""
     idx = _Z_IDX_CACHE.get(device)
     if idx is None:
-        idx = torch.tensor(schema.Z_TO_EKF_INDEX, dtype=torch.long, device=device)
+        with torch.inference_mode(False):  # a cached inference tensor would break later autograd use
+            idx = torch.tensor(schema.Z_TO_EKF_INDEX, dtype=torch.long, device=device)
         _Z_IDX_CACHE[device] = idx
     return idx
 
@@ -65,10 +66,11 @@ def _constants(n: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor
     if key not in _CONST_CACHE:
         src = [next((r for st, r in _RATE_PAIRS if st == i), i) for i in range(_NPOS, n)]
         has = [float(any(st == i for st, _ in _RATE_PAIRS)) for i in range(_NPOS, n)]
-        _CONST_CACHE[key] = (
-            torch.tensor(src, dtype=torch.long, device=device),
-            torch.tensor(has, dtype=dtype, device=device).unsqueeze(-1),
-        )
+        with torch.inference_mode(False):  # first built under inference_mode, the cache must still serve autograd
+            _CONST_CACHE[key] = (
+                torch.tensor(src, dtype=torch.long, device=device),
+                torch.tensor(has, dtype=dtype, device=device).unsqueeze(-1),
+            )
     return _CONST_CACHE[key]
 
 
