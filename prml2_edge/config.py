@@ -53,6 +53,9 @@ class ModelConfig:
     trt_fp16: bool = False
     trt_cache_dir: str = "~/.cache/prml2/trt"
     stride: int = DEFAULT_STRIDE  # a new window every `stride` 50 Hz steps
+    # the model on a worker thread: no 50 Hz step waits for an inference; its output is used when it arrives
+    # (runtime/async_estimator.py). For a model slower than the step (the paper-size one on a CPU). Off by default
+    async_inference: bool = False
 
 
 @dataclass(frozen=True)

@@ -83,10 +83,11 @@ def open_session_model(path: str | Path, threads: int = 1, spinning: bool | None
 
 
 def build_pipeline(model, initial_pose: InitialPose, signal_map: str = "prml2_onboard",
-                   stride: int = DEFAULT_STRIDE) -> Pipeline:
+                   stride: int = DEFAULT_STRIDE, async_inference: bool = False) -> Pipeline:
     """A runtime pipeline (no sinks) around an already-open model (``OnnxModel`` or a stand-in), the model every
-    ``stride``-th step (the runtime's default)."""
-    return Pipeline.build(map=signal_map, model=model, initial_pose=initial_pose, stride=stride)
+    ``stride``-th step (the runtime's default), on a worker thread with ``async_inference``."""
+    return Pipeline.build(map=signal_map, model=model, initial_pose=initial_pose, stride=stride,
+                          async_inference=async_inference)
 
 
 def split_frames(frames: Sequence[can.Message], warmup_rows: int, chunk_s: float):
@@ -128,9 +129,13 @@ def _outside_rows(lat, bounds: list[tuple[tuple[int, ...], tuple[int, ...]]], sa
     samples.outside_ms.extend(np.sum(per_stage, axis=0).tolist())
 
 
-def measure_steps(pipeline: Pipeline, frames: Iterable[can.Message], skip: int = 0) -> StepSamples:
+def measure_steps(pipeline: Pipeline, frames: Iterable[can.Message], skip: int = 0, paced: bool = False) -> StepSamples:
     """Feed ``frames`` to ``pipeline`` as fast as it takes them; per-row samples (first ``skip`` rows with an
-    inference dropped). The pipeline may already have seen earlier frames of the same stream."""
+    inference dropped). The pipeline may already have seen earlier frames of the same stream.
+
+    ``paced``: each frame at its own time after the first (as a bus delivers them), and every row counts, its model
+    time 0: the figure for a pipeline whose model runs on a worker thread (``async_inference``), where no row waits
+    for an inference and the rows an output arrives at are not the ones that would have waited."""
     lat = pipeline.latency
     marks: list[tuple[int, int]] = []  # (end_to_end index, infer index) of rows with an inference
     bounds = []  # per counted row: OUTSIDE_STAGES sample counts before its first frame and after its last
@@ -139,7 +144,13 @@ def measure_steps(pipeline: Pipeline, frames: Iterable[can.Message], skip: int =
     seen = 0
     gc.collect()
     t0 = time.perf_counter()
+    ts0 = None
     for msg in frames:
+        if paced:
+            ts0 = msg.timestamp if ts0 is None else ts0
+            wait = t0 + (msg.timestamp - ts0) - time.perf_counter()
+            if wait > 0:
+                time.sleep(wait)
         n_e2e, n_inf = lat.count("end_to_end"), lat.count("infer")
         outs = pipeline.step(msg, time.perf_counter_ns())
         if not outs:
@@ -147,7 +158,10 @@ def measure_steps(pipeline: Pipeline, frames: Iterable[can.Message], skip: int =
         rows += len(outs)
         counted = False
         for i, out in enumerate(outs):
-            if out.inferred:
+            if paced:
+                marks.append((n_e2e + i, -1))
+                counted = True
+            elif out.inferred:
                 seen += 1
                 if seen > skip:
                     marks.append((n_e2e + i, n_inf))
@@ -164,6 +178,6 @@ def measure_steps(pipeline: Pipeline, frames: Iterable[can.Message], skip: int =
     for i_e2e, i_inf in marks:
         if i_e2e < e2e_all.size and i_inf < inf_all.size:
             samples.e2e_ms.append(float(e2e_all[i_e2e]))
-            samples.model_ms.append(float(inf_all[i_inf]))
+            samples.model_ms.append(0.0 if i_inf < 0 else float(inf_all[i_inf]))
     _outside_rows(lat, bounds, samples)
     return samples

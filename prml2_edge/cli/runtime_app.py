@@ -48,7 +48,8 @@ def config_from_args(args: argparse.Namespace) -> RuntimeConfig:
         can=can_section,
         signals={"map": args.map, "dbc": args.dbc, "mu": args.mu, "stale_periods": args.stale_periods},
         model={"path": args.model, "threads": args.threads, "stride": args.stride, "providers": providers,
-               "spinning": True if getattr(args, "spinning", False) else None},
+               "spinning": True if getattr(args, "spinning", False) else None,
+               "async_inference": True if getattr(args, "async_inference", False) else None},
         initial_pose=pose,
         sinks={"jsonl": args.jsonl, "csv": args.csv, "tum": args.tum, "mcap": getattr(args, "mcap", None),
                "status_interval_s": getattr(args, "status_interval", None)},
@@ -119,7 +120,7 @@ def build_pipeline(cfg: RuntimeConfig, extra_sinks: list | None = None, external
     try:
         return Pipeline.build(map=cfg.signals.map, dbc=cfg.signals.dbc, model=model_path, threads=cfg.model.threads,
                               spinning=cfg.model.spinning, providers=cfg.model.providers, stride=cfg.model.stride,
-                              mu=cfg.signals.mu,
+                              async_inference=cfg.model.async_inference, mu=cfg.signals.mu,
                               stale_periods=cfg.signals.stale_periods, initial_pose=initial_pose, sinks=sinks,
                               trt_cache_dir=cfg.model.trt_cache_dir, trt_fp16=cfg.model.trt_fp16,
                               calibration=cfg.calibration.enabled, calibration_file=cfg.calibration.file,

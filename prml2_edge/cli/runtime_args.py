@@ -21,6 +21,9 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
                    help="with --threads >= 2: ONNX Runtime worker threads busy-wait between parallel sections "
                         "instead of sleeping (tighter p99 latency, more CPU)")
     g.add_argument("--stride", type=int, help=f"a new model window every N 50 Hz steps (default {DEFAULT_STRIDE})")
+    g.add_argument("--async-inference", action="store_true",
+                   help="run the model on a worker thread so that no 50 Hz step waits for it; its output is used "
+                        "when it arrives (for a model slower than the 20 ms step)")
     g.add_argument("--providers", metavar="LIST",
                    help="execution providers in order, comma separated (default tensorrt,cuda,cpu)")
     g.add_argument("--stale-periods", type=float,

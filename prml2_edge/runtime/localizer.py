@@ -22,6 +22,7 @@ import numpy as np
 from prml2_edge import schema
 from prml2_edge.config import DEFAULT_STRIDE
 from prml2_edge.ekf.numpy_ekf import CalibrationNoise, CalibrationStd, StepStatus, default_process_noise, wrap_angle
+from prml2_edge.runtime.async_estimator import AsyncEstimator
 from prml2_edge.runtime.estimator import Estimate, Estimator, Model
 from prml2_edge.runtime.filter import PoseFilter
 from prml2_edge.runtime.initial_pose import InitialPose
@@ -37,6 +38,7 @@ class LocalizerConfig:
     """Tunables of :class:`StreamingLocalizer` (SI units unless named otherwise)."""
 
     stride: int = DEFAULT_STRIDE  # a new window every `stride` 50 Hz steps (config.py says how it was chosen)
+    async_inference: bool = False  # the model on a worker thread: no step waits for it (runtime/async_estimator.py)
     mu: float = 1.0  # road friction for the physics guard (<= 0.5: low-mu limits)
     # Outputs of a window whose rows had an invalid signal in more than this fraction are not used:
     # a dropout of d rows costs the model until at most fraction * L of them are left in the window.
@@ -256,7 +258,8 @@ class StreamingLocalizer:
         if process_noise is None:
             process_noise = default_process_noise(self.dt_s)
         cfg = self.config
-        self.estimator = Estimator(model, cfg.stride, cfg.max_invalid_fraction, schema.accel_limit_mps2(cfg.mu))
+        estimator = AsyncEstimator if cfg.async_inference else Estimator
+        self.estimator = estimator(model, cfg.stride, cfg.max_invalid_fraction, schema.accel_limit_mps2(cfg.mu))
         self.filter = PoseFilter(cfg, process_noise, initial_pose, self.dt_s)
         self.filter.omega_var_inflation = omega_var_inflation(model, cfg)
         self.filter.omega_var_inflation_coarse = omega_var_inflation(model, cfg, coarse=True)

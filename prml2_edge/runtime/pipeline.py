@@ -145,7 +145,7 @@ class Pipeline:
     def build(cls, map: str | Path = "prml2_onboard", dbc: str | Path | None = None,
               model: str | Path | OnnxModel | None = None, threads: int = 1, providers: Sequence[str] = ("cpu",),
               spinning: bool = False,
-              stride: int = DEFAULT_STRIDE, mu: float = 1.0, stale_periods: float = 3.0,
+              stride: int = DEFAULT_STRIDE, async_inference: bool = False, mu: float = 1.0, stale_periods: float = 3.0,
               initial_pose: InitialPose | None = None, sinks: Sequence = (),
               localizer_config: LocalizerConfig | None = None, trt_cache_dir: str = "~/.cache/prml2/trt",
               trt_fp16: bool = False, calibration: bool = True, calibration_file: str | Path | None = None,
@@ -166,7 +166,8 @@ class Pipeline:
             model = OnnxModel(model if model is not None else default_model_path(), threads=threads,
                               providers=providers, trt_cache_dir=trt_cache_dir, trt_fp16=trt_fp16,
                               spinning=spinning)
-        cfg = localizer_config or LocalizerConfig(stride=stride, mu=mu, calibration=calibration)
+        cfg = localizer_config or LocalizerConfig(stride=stride, async_inference=async_inference, mu=mu,
+                                                  calibration=calibration)
         stats = FrameStats()
         latency = LatencyRecorder()
         decoder = FrameDecoder(signal_map, db)
@@ -372,6 +373,9 @@ class Pipeline:
         self._save_calibration(self.last.t_s if self.last is not None else None)
         for sink in self.sinks:
             sink.close()
+        close = getattr(getattr(self.localizer, "estimator", None), "close", None)
+        if close is not None:  # the async estimator's worker thread
+            close()
 
     # ---- reporting -------------------------------------------------------------------------------
 
