@@ -48,6 +48,33 @@ class StrideReplay(ReplayModel):
         return super().step(window)
 
 
+def install_lag(lag: int) -> None:
+    """Every stride > 1 run consumes each output ``lag`` rows after its window ended, as async inference does
+    (``runtime/async_estimator.py``; 2.9 rows measured for the paper-size model), deterministically: until it
+    arrives, the previous output stays in use. Stride 1 stays the reference without lag. Patches
+    :meth:`Estimator.step` in this process (and the forked workers)."""
+    from prml2_edge.runtime import estimator as est_mod
+
+    sync_step = est_mod.Estimator.step
+
+    def step(self, values, all_valid, discontinuity=False):
+        est = sync_step(self, values, all_valid, discontinuity)
+        if self.stride == 1:
+            return est
+        if discontinuity or not hasattr(self, "_lag_queue"):
+            self._lag_queue, self._lag_cur = [], None
+        n = self.window.count
+        if est.inferred and est.z is not None:
+            self._lag_queue.append((n + lag, est.z.copy(), est.z_var.copy(), est.guard_fired))
+        while self._lag_queue and self._lag_queue[0][0] <= n:
+            self._lag_cur = self._lag_queue.pop(0)[1:]
+        if est.z is None or self._lag_cur is None:
+            return est_mod.Estimate(est.inferred, infer_ns=est.infer_ns, guard_ns=est.guard_ns)
+        return est_mod.Estimate(est.inferred, *self._lag_cur, est.infer_ns, est.guard_ns)
+
+    est_mod.Estimator.step = step
+
+
 def _one_task(args):
     spec, task, strides = args
     rec = RecordingModel(build_model(spec, task.bias))
@@ -61,7 +88,7 @@ def _one_task(args):
 def measure(args) -> dict:
     spec = ModelSpec("PRML2", "onnx", args.model, calibration=True)
     dataset = load_dataset(args.data)
-    doc = {"data": args.data, "model": args.model, "strides": args.strides, "splits": {}}
+    doc = {"data": args.data, "model": args.model, "strides": args.strides, "lag_rows": args.lag, "splits": {}}
     for split in args.splits:
         tasks = split_tasks(dataset, split, max_windows=args.max_windows)
         res: dict[int, list] = {k: [] for k in [1, *args.strides] if k}
@@ -110,8 +137,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--infer-ms", type=float, default=None, help="the model's inference time [ms] for the cost column")
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--max-windows", type=int, default=None, help="at most N windows per drive segment")
+    p.add_argument("--lag", type=int, default=0,
+                   help="rows after its window that each output of a stride > 1 run is used (async inference)")
     p.add_argument("--out", default=str(OUT))
     args = p.parse_args(argv)
+    if args.lag > 0:
+        install_lag(args.lag)
     if 1 not in args.strides:
         args.strides = [1, *args.strides]
     t0 = time.time()
