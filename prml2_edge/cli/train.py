@@ -56,6 +56,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pretrain-physics", type=float, metavar="LAMBDA",
                         help="add LAMBDA x (acceleration consistency + jerk) to the pretraining NLL, as the "
                              "authors' public code does with 0.5 (default 0: the paper's loss)")
+    parser.add_argument("--yaw-offset-aug", type=float, metavar="DPS",
+                        help="add a random CAN yaw-rate offset within +-DPS deg/s to each training window's input "
+                             "(the target stays the truth), so that the model does not pass a gyro offset through "
+                             "(default 0: off)")
     parser.add_argument("--pretrain-frac", type=float, metavar="F",
                         help="share of the epochs spent pretraining (default 0.7, the paper; the authors' code 0.8)")
     parser.add_argument("--beta", type=float, help="fine-tuning position-loss scale (default 8, the paper; "
@@ -145,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
         "seed": args.seed, "num_threads": args.threads, "max_train_windows": args.max_train_windows,
         "finetune": False if args.no_finetune else None, "nll_reduction": args.nll_reduction,
         "ft_horizon_s": args.ft_horizon, "pretrain_physics": args.pretrain_physics,
-        "pretrain_frac": args.pretrain_frac, "beta": args.beta,
+        "pretrain_frac": args.pretrain_frac, "beta": args.beta, "yaw_offset_aug_dps": args.yaw_offset_aug,
     })
     train_cfg.validate()
     torch.set_num_threads(train_cfg.num_threads)

@@ -103,6 +103,10 @@ class TrainConfig:
     # term (central-difference dv/dt against a, times dt^2) and lambda x a jerk term (consecutive a differences),
     # in SI units, with lambda 0.5 each. 0: the paper's pretraining.
     pretrain_physics: float = 0.0
+    # Issue 26: a CAN yaw-rate offset drawn per training window, uniform within +-this [deg/s], added to the input
+    # yaw rate (the target omega_z stays the truth): a model that must not pass an uncalibrated gyro's offset
+    # through, as the runtime filter assumes (offset share 0). 0: off.
+    yaw_offset_aug_dps: float = 0.0
 
     def pretrain_epochs(self) -> int:
         """Epochs of NLL pretraining: all of them for PRML2*, otherwise round(70 %)."""
@@ -129,6 +133,8 @@ class TrainConfig:
             raise ConfigError(f"pretrain fraction must be in (0, 1], got {self.pretrain_frac}")
         if not (self.mu > 0):
             raise ConfigError(f"mu must be > 0, got {self.mu}")
+        if not (self.yaw_offset_aug_dps >= 0):
+            raise ConfigError(f"--yaw-offset-aug must be >= 0 deg/s, got {self.yaw_offset_aug_dps}")
         if self.nll_reduction not in ("sum", "mean"):
             raise ConfigError(f"nll_reduction must be 'sum' or 'mean', got {self.nll_reduction!r}")
         if self.ft_horizon_s < 0 or self.ft_rows < 1 or self.ft_segments < 1:

@@ -167,6 +167,19 @@ def _to_tensors(batch: tuple[np.ndarray, np.ndarray, np.ndarray], origin: int):
     return onboard_t, z_t, d_gt
 
 
+def _yaw_offset_augment(onboard: torch.Tensor, cfg: TrainConfig, step: int) -> torch.Tensor:
+    """``onboard`` (b, L, 9) with one uniform yaw-rate offset per window within +-``cfg.yaw_offset_aug_dps``
+    (seeded by the run's seed and the step, so a resumed run draws the same); unchanged when that is 0."""
+    if cfg.yaw_offset_aug_dps <= 0:
+        return onboard
+    rng = np.random.default_rng([cfg.seed, 26, step])
+    offset = rng.uniform(-1.0, 1.0, onboard.shape[0]) * np.radians(cfg.yaw_offset_aug_dps)
+    yaw = schema.SIGNAL_BY_NAME["yaw_rate_radps"].index
+    out = onboard.clone()
+    out[:, :, yaw] += torch.as_tensor(offset, dtype=out.dtype)[:, None]
+    return out
+
+
 def _stage_of(epoch: int, cfg: TrainConfig) -> str:
     return PRETRAIN if epoch < cfg.pretrain_epochs() else FINETUNE
 
@@ -500,6 +513,7 @@ def _losses(loop: _Loop, data: TrainData, idx: np.ndarray, stage: str,
         pos_reduction, n_items = "mean", len(idx) * seq_len // seq_rows  # n_items: windows
     else:
         onboard, z, d_gt = _to_tensors(data.train.get(idx), loop.H)
+        onboard = _yaw_offset_augment(onboard, cfg, int(loop.counters["steps"]))
         mean, var = guard(*loop.train_model(onboard))  # (b, L-H, 5) each
         z_gt = z[:, loop.H:]
         pos_reduction, n_items = "sum", len(idx)

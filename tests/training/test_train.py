@@ -278,3 +278,27 @@ def test_pretrain_physics_terms_penalise_inconsistent_and_jerky_predictions():
     cfg.validate()
     with pytest.raises(ConfigError, match="pretrain_physics"):
         replace(CFG, pretrain_physics=-1.0).validate()
+
+
+def test_yaw_offset_augmentation_moves_only_the_yaw_rate_by_one_offset_per_window():
+    import math
+
+    import torch
+
+    from prml2_edge import schema
+    from prml2_edge.training.presets import TrainConfig
+    from prml2_edge.training.trainer import _yaw_offset_augment
+
+    onboard = torch.randn(64, 20, schema.NUM_SIGNALS)
+    assert _yaw_offset_augment(onboard, TrainConfig(), 3) is onboard  # off by default
+    cfg = TrainConfig(yaw_offset_aug_dps=0.6)
+    out = _yaw_offset_augment(onboard, cfg, 3)
+    yaw = schema.SIGNAL_BY_NAME["yaw_rate_radps"].index
+    diff = (out - onboard).numpy()
+    others = [i for i in range(schema.NUM_SIGNALS) if i != yaw]
+    assert np.all(diff[:, :, others] == 0.0)
+    per_window = diff[:, :, yaw]
+    assert np.allclose(per_window, per_window[:, :1], atol=1e-6)  # constant within a window
+    assert np.abs(per_window).max() <= math.radians(0.6) + 1e-6 and per_window[:, 0].std() > math.radians(0.2)
+    assert torch.equal(out, _yaw_offset_augment(onboard, cfg, 3))  # seeded by the step: a resume draws the same
+    assert not torch.equal(out, _yaw_offset_augment(onboard, cfg, 4))
