@@ -75,13 +75,15 @@ def write_fixes(drive, path: Path, seconds: float, std_m: float, heading_std_deg
     return n
 
 
-def replay_cli(log: Path, csv: Path, fixes: Path, calibration: bool, stride: int | None = None) -> dict:
+def replay_cli(log: Path, csv: Path, fixes: Path, calibration: bool, stride: int | None = None,
+               model: str | None = None) -> dict:
     """``prml2 replay LOG --gnss FIXES --truth CSV`` in this process; its summary JSON."""
     from prml2_edge.cli.main import main as prml2
 
     out = log.with_suffix(".cal.json" if calibration else ".ref.json")
     argv = ["replay", str(log), "--gnss", str(fixes), "--truth", str(csv), "--summary-json", str(out)]
     argv += [] if stride is None else ["--stride", str(stride)]
+    argv += [] if model is None else ["--model", model]
     with contextlib.redirect_stdout(io.StringIO()):
         rc = prml2(argv + ([] if calibration else ["--no-calibration"]))
     s = json.loads(out.read_text())
@@ -106,7 +108,8 @@ def highway_case(args) -> int:
         write_drive_csv(drive, csv)
         encode_drive_to_log(drive, log)
         n_fixes = write_fixes(drive, fixes, args.gnss_s, args.gnss_std_m, 1.0, seed)
-        on, off = replay_cli(log, csv, fixes, True, args.stride), replay_cli(log, csv, fixes, False, args.stride)
+        on = replay_cli(log, csv, fixes, True, args.stride, args.model)
+        off = replay_cli(log, csv, fixes, False, args.stride, args.model)
         est = on["truth"].get("calibration_at_outage", {}).get("yaw_rate_offset_dps", math.nan)
         rows.append({"car": car, "seed": seed, "fixes": n_fixes, "calibrated": on, "reference": off,
                      "yaw_offset_estimate_dps": est, "yaw_offset_error_dps": est - args.yaw_offset_dps})
@@ -147,6 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--wheel-scale-pct", type=float, default=1.0)
     ap.add_argument("--stride", type=int, default=None, help="--case highway: the model every N steps (default: the "
                                                               "runtime's)")
+    ap.add_argument("--model", default=None, help="--case highway: ONNX model (default: the shipped one)")
     ap.add_argument("--out", default=None,
                     help="JSON path (default benchmarks/results/calibration_replay[_highway].json)")
     args = ap.parse_args(argv)
