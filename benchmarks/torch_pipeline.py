@@ -62,6 +62,9 @@ class TorchEagerLocalizer:
         self.x: torch.Tensor | None = None
         self.P: torch.Tensor | None = None
 
+    def close(self) -> None:
+        """Nothing to release (the runtime localiser's interface)."""
+
     def step(self, values: np.ndarray, valid: np.ndarray, t_s: float, gnss=None,
              discontinuity: bool = False, bus_silent: bool = False, substituted=None,
              substitute_std=None) -> TorchStep:

@@ -5,7 +5,7 @@ runs it inside the step that is due, so that step takes as long as the model (th
 core, past the 20 ms step). Here the due step hands a copy of the window to one worker thread (onnxruntime releases
 the GIL while it runs) and returns at once; each later step checks whether the result is in, guards it, and from
 then on gives it to the filter, which meanwhile carries on with the raw cues and the previous output. The cost: an
-output is consumed one or more steps after its window ended (the lag is counted in ``lag_steps``).
+output is consumed one or more steps after its window ended (``summary()['async']`` gives the lag in steps).
 
 Rules, so that nothing is lost or used out of place:
 
@@ -27,7 +27,6 @@ from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 
-from prml2_edge.guard import physics_guard_row
 from prml2_edge.runtime.estimator import Estimate, Estimator, Model
 from prml2_edge.runtime.status import InferenceStatus
 
@@ -44,7 +43,8 @@ class AsyncEstimator(Estimator):
         super().reset()
         self._future = None  # a window in flight is forgotten; its result is dropped when it comes
         self._arrived = -1  # window.count when the output in use arrived; -1: none
-        self.lag_steps: list[int] = []  # per consumed output: steps from its window's end to its first use
+        # steps from a consumed output's window end to its first use: count, sum, min, max (bounded on a long drive)
+        self._lag = [0, 0, 0, 0]
 
     def _run(self, window: np.ndarray, invalid_fraction: float) -> tuple[InferenceStatus, np.ndarray, np.ndarray,
                                                                          float, int]:
@@ -64,29 +64,23 @@ class AsyncEstimator(Estimator):
         self._future = None
         status, mean, var, invalid_fraction, infer_ns = fut.result()
         t0 = time.perf_counter_ns()
-        self.n_inferences += 1
-        if status is not InferenceStatus.SUCCESS:
-            self.n_inference_failures += 1
-            self._output_ok = False
-        else:
-            self._z_mean, self._z_var, self._fired = physics_guard_row(mean, var, self.a_max_mps2)
-            self.guard_stats.add(self._fired)
-            self._output_ok = invalid_fraction <= self.max_invalid_fraction
+        self._accept(status, mean, var, invalid_fraction)
+        if status is InferenceStatus.SUCCESS:
             self._arrived = self.window.count
-            self.lag_steps.append(self.window.count - self._inf_count)
+            lag = self.window.count - self._inf_count
+            n, total, low, high = self._lag
+            self._lag = [n + 1, total + lag, lag if n == 0 else min(low, lag), max(high, lag)]
         return True, infer_ns, time.perf_counter_ns() - t0
 
     def step(self, values: np.ndarray, all_valid: bool, discontinuity: bool = False) -> Estimate:
         """One row into the window; sends a due window to the worker; the newest arrived output, if any."""
         if discontinuity:
-            self.window.clear()
+            self._break()
             self._future = None
-            self._inf_count = self._arrived = -1
-            self._output_ok = False
+            self._arrived = -1
         self.window.step(values, all_valid)
         arrived, infer_ns, guard_ns = self._collect()
-        due = self.window.full and (self._inf_count < 0 or self.window.count - self._inf_count >= self.stride)
-        if due and self._future is None:
+        if self._future is None and self._due():
             self._inf_count = self.window.count
             self._future = self._pool.submit(self._run, self.window.view().copy(), self.window.invalid_fraction)
         fresh = 0 <= self._arrived and self.window.count - self._arrived < 2 * self.stride
@@ -99,8 +93,7 @@ class AsyncEstimator(Estimator):
         self._pool.shutdown(wait=True)
 
     def summary(self) -> dict:
-        lag = np.asarray(self.lag_steps, dtype=np.float64)
-        out = super().summary()
-        out["async"] = {"lag_steps_mean": float(lag.mean()) if lag.size else None,
-                        "lag_steps_max": int(lag.max()) if lag.size else None}
-        return out
+        n, total, low, high = self._lag
+        lag = {"lag_steps_mean": total / n, "lag_steps_min": low, "lag_steps_max": high} if n else \
+            {"lag_steps_mean": None, "lag_steps_min": None, "lag_steps_max": None}
+        return {**super().summary(), "async": lag}

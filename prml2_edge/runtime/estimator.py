@@ -74,6 +74,12 @@ class Estimator:
         status = self.model.step(self.window.view())
         t1 = time.perf_counter_ns()
         self._inf_count = self.window.count
+        self._accept(status, self.model.mean[-1], self.model.var[-1], self.window.invalid_fraction)
+        return t1 - t0, time.perf_counter_ns() - t1
+
+    def _accept(self, status: InferenceStatus, mean: np.ndarray | None, var: np.ndarray | None,
+                invalid_fraction: float) -> None:
+        """Count one inference and make its newest decoder row (``mean``, ``var`` (5,)) the held output."""
         self.n_inferences += 1
         if status is not InferenceStatus.SUCCESS:
             self._output_ok = False
@@ -81,11 +87,22 @@ class Estimator:
         else:
             # Only the newest decoder step is ever consumed (held until the next window), so only it is
             # guarded and counted: the guard statistics are over used predictions.
-            self._z_mean, self._z_var, self._fired = physics_guard_row(self.model.mean[-1], self.model.var[-1],
-                                                                       self.a_max_mps2)
+            self._z_mean, self._z_var, self._fired = physics_guard_row(mean, var, self.a_max_mps2)
             self.guard_stats.add(self._fired)
-            self._output_ok = self.window.invalid_fraction <= self.max_invalid_fraction
-        return t1 - t0, time.perf_counter_ns() - t1
+            self._output_ok = invalid_fraction <= self.max_invalid_fraction
+
+    def _break(self) -> None:
+        """A discontinuity: the window and the held output belong before it."""
+        self.window.clear()
+        self._inf_count = -1
+        self._output_ok = False
+
+    def _due(self) -> bool:
+        """The window is full and ``stride`` rows have passed since the last inference (:meth:`schedule`)."""
+        return self.window.full and (self._inf_count < 0 or self.window.count - self._inf_count >= self.stride)
+
+    def close(self) -> None:
+        """Nothing to release (the asynchronous estimator stops its worker thread)."""
 
     @staticmethod
     def schedule(discontinuity, window_len: int, stride: int, state: list[int] | None = None,
@@ -116,13 +133,11 @@ class Estimator:
     def step(self, values: np.ndarray, all_valid: bool, discontinuity: bool = False) -> Estimate:
         """One row ``values`` (9,) into the window; the z to use at this step, if any."""
         if discontinuity:
-            self.window.clear()
-            self._inf_count = -1
-            self._output_ok = False
+            self._break()
         self.window.step(values, all_valid)
         inferred = False
         infer_ns = guard_ns = 0
-        if self.window.full and (self._inf_count < 0 or self.window.count - self._inf_count >= self.stride):
+        if self._due():
             infer_ns, guard_ns = self._infer()
             inferred = True
         if self._output_ok and all_valid and self._inf_count >= 0:

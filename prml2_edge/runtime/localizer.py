@@ -378,6 +378,10 @@ class StreamingLocalizer:
     def n_gnss_rejected(self) -> int:
         return self.filter.n_gnss_rejected
 
+    def close(self) -> None:
+        """Release the estimator's worker thread, if it has one."""
+        self.estimator.close()
+
     def summary(self) -> dict:
         """The estimator's and the filter's counters, as plain data."""
         return {**self.estimator.summary(), "model_used_steps": self.n_model_used, **self.filter.summary()}

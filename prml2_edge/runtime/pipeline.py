@@ -373,9 +373,7 @@ class Pipeline:
         self._save_calibration(self.last.t_s if self.last is not None else None)
         for sink in self.sinks:
             sink.close()
-        close = getattr(getattr(self.localizer, "estimator", None), "close", None)
-        if close is not None:  # the async estimator's worker thread
-            close()
+        self.localizer.close()
 
     # ---- reporting -------------------------------------------------------------------------------
 

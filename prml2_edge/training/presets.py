@@ -105,7 +105,8 @@ class TrainConfig:
     pretrain_physics: float = 0.0
     # Issue 26: a CAN yaw-rate offset drawn per training window, uniform within +-this [deg/s], added to the input
     # yaw rate (the target omega_z stays the truth): a model that must not pass an uncalibrated gyro's offset
-    # through, as the runtime filter assumes (offset share 0). 0: off.
+    # through, as the runtime filter assumes (offset share 0). Window batches only (pretraining and the paper's
+    # fine-tuning), not the segments of ft_horizon_s > 0. 0: off.
     yaw_offset_aug_dps: float = 0.0
 
     def pretrain_epochs(self) -> int:
