@@ -43,7 +43,7 @@ import numpy as np
 
 from prml2_edge.bench.machine import machine_info
 from prml2_edge.data.datasets import load_dataset
-from prml2_edge.evaluation.metrics import coverage, dr_summary, paired_comparison, paired_text
+from prml2_edge.evaluation.metrics import coverage, coverage_text, dr_summary, paired_comparison, paired_text
 from prml2_edge.evaluation.models import RecordingModel, ReplayModel
 from prml2_edge.evaluation.protocol import (
     DEPLOYMENT_PREROLL_S,
@@ -178,8 +178,7 @@ def markdown(doc: dict) -> list[str]:
     for key, rows in doc["splits"].items():
         for name, r in rows.items():
             paired = paired_text(r["paired_vs_osd"])
-            cov = r["coverage_pct"]
-            c = f"{cov['coverage_2sigma_pct']:.0f} / {cov['coverage_3sigma_pct']:.0f}" if cov else "–"
+            c = coverage_text(r["coverage_pct"])
             out.append(f"| {key} | {name} | {r['rmse_mean_m']:.2f} ({r['ratio_to_osd']:.2f}×) | "
                        f"{r['drift_mean_pct']:.2f} | {paired} | {c} | {r['n_windows']} |")
     out += car_table(doc)

@@ -27,7 +27,7 @@ import numpy as np
 from prml2_edge import schema
 from prml2_edge.bench.machine import machine_info
 from prml2_edge.data.datasets import load_dataset
-from prml2_edge.evaluation.metrics import coverage, dr_summary, paired_comparison, paired_text
+from prml2_edge.evaluation.metrics import coverage, coverage_text, dr_summary, paired_comparison, paired_text
 from prml2_edge.evaluation.models import RecordingModel, ReplayModel
 from prml2_edge.evaluation.protocol import ModelSpec, build_model, run_window, split_tasks
 from prml2_edge.progress import Progress
@@ -120,11 +120,9 @@ def markdown(doc: dict) -> list[str]:
     for split, rows in doc["splits"].items():
         for k, r in rows.items():
             paired = paired_text(r["paired_vs_k1"])
-            c = r["coverage_pct"]
             cost = "–" if r["infer_ms_per_s"] is None else f"{r['infer_ms_per_s']:.1f}"
             out.append(f"| {split} | {k} | {r['inferences_per_s']:g} | {r['rmse_mean_m']:.2f} | "
-                       f"{r['drift_mean_pct']:.2f} | {paired} | {c['coverage_2sigma_pct']:.0f} / "
-                       f"{c['coverage_3sigma_pct']:.0f} | {cost} |")
+                       f"{r['drift_mean_pct']:.2f} | {paired} | {coverage_text(r['coverage_pct'])} | {cost} |")
     return out
 
 

@@ -107,6 +107,13 @@ def paired_comparison(reference: Sequence[WindowResult], other: Sequence[WindowR
     }
 
 
+def coverage_text(cov: dict | None) -> str:
+    """A :func:`coverage` result as ``92 / 95`` (2σ / 3σ %); ``–`` for none."""
+    if not cov or "coverage_2sigma_pct" not in cov:
+        return "–"
+    return f"{cov['coverage_2sigma_pct']:.0f} / {cov['coverage_3sigma_pct']:.0f}"
+
+
 def paired_text(p: dict | None) -> str:
     """A :func:`paired_comparison` result as ``+0.12 [-0.30, +0.55]`` (mean difference and its 95 % interval, m);
     ``–`` for none."""
