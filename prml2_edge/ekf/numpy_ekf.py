@@ -92,6 +92,18 @@ except (ImportError, AttributeError):  # pragma: no cover - other NumPy layouts
     _cholesky_lo = np.linalg.cholesky
     _solve = np.linalg.solve
 
+def _valid_z(z: np.ndarray | None, z_var: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(z, z_var)`` as float64 (5,) arrays if both are given, finite and the variances > 0, else None."""
+    if z is None or z_var is None:
+        return None
+    zz, vv = np.asarray(z, dtype=np.float64), np.asarray(z_var, dtype=np.float64)
+    if zz.shape != (MEAS_DIM,) or vv.shape != (MEAS_DIM,):
+        return None
+    if not (np.isfinite(zz).all() and np.isfinite(vv).all() and (vv > 0.0).all()):
+        return None
+    return zz, vv
+
+
 # Ekf.step: after a non-finite state the filter restarts from the last finite state with its
 # covariance diagonal (at least P0's) multiplied by this factor.
 RESET_COV_INFLATION = 10.0
@@ -656,6 +668,12 @@ class Ekf:
         """The model's z: :func:`update_model_calibrated` (with the kept H template) or :func:`update`."""
         if not self.calibration:
             return _update_selected(x, p, _Z_IDX, z - x[_Z_IDX], z_var)
+        return update_linear(x, p, *self._model_rows(x, z, z_var), self._eye)
+
+    def _model_rows(self, x: np.ndarray, z: np.ndarray,
+                    z_var: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(H (5, 11), innovation (5,), variance (5,))`` of the model's z in the calibrated layout
+        (:func:`model_measurement`, filled into the kept H template)."""
         omega, v_x, v_y, a_x, a_y = x[_OMEGA:_AY + 1].tolist()
         b_yaw, k_wheel, b_model = x[_B_YAW:].tolist()
         h = self._H_model
@@ -663,7 +681,7 @@ class Ekf:
         hx = [0.0] * MEAS_DIM
         hx[schema.Z.V_X], hx[schema.Z.V_Y], hx[schema.Z.A_X], hx[schema.Z.A_Y] = (1.0 + k_wheel) * v_x, v_y, a_x, a_y
         hx[schema.Z.OMEGA_Z] = omega + self.model_offset_share * b_yaw + b_model
-        return update_linear(x, p, h, z - np.array(hx), z_var, self._eye)
+        return h, z - np.array(hx), z_var
 
     def _commit(self, x: np.ndarray, p: np.ndarray, status: StepStatus) -> StepStatus:
         if np.isfinite(x).all() and np.isfinite(p).all():
@@ -686,24 +704,52 @@ class Ekf:
             x, p = self._predict()
             if z is None and z_var is None:
                 return self._commit(x, p, StepStatus.PREDICT_ONLY)
-            zz = None if z is None else np.asarray(z, dtype=np.float64)
-            vv = None if z_var is None else np.asarray(z_var, dtype=np.float64)
-            valid = (
-                zz is not None
-                and vv is not None
-                and zz.shape == (MEAS_DIM,)
-                and vv.shape == (MEAS_DIM,)
-                and np.isfinite(zz).all()
-                and np.isfinite(vv).all()
-                and (vv > 0.0).all()
-            )
-            if not valid:
+            zv = _valid_z(z, z_var)
+            if zv is None:
                 return self._commit(x, p, StepStatus.INPUT_INVALID)
             try:
-                x, p = self._update_model(x, p, zz, vv)
+                x, p = self._update_model(x, p, *zv)
             except np.linalg.LinAlgError:
                 x = np.full(self.dim, np.nan)  # cannot happen for finite P; handled as a reset
             return self._commit(x, p, StepStatus.SUCCESS)
+
+    def step_with_cues(self, z: np.ndarray | None, z_var: np.ndarray | None, yaw_rate: float | None = None,
+                       yaw_var: float = 1.0, wheel_speed: float | None = None,
+                       wheel_var: float = 1.0) -> tuple[StepStatus, bool]:
+        """:meth:`step` and :meth:`update_cues` in one Kalman update (the runtime's hot path).
+
+        Predict, then the model's z (when valid) and the raw cues given stacked into one measurement. R is
+        diagonal, so this is the estimate of the two updates in turn except that the cue rows are linearised
+        at the prediction instead of at the model-updated state (they depend on it only through the wheel
+        scale, which the model's z does not measure: differences of order 1e-12 in the tests). One Cholesky
+        of 7 x 7 instead of 5 x 5 and 2 x 2, one Joseph form and one commit instead of two.
+
+        Returns ``(status, cues_fused)``: ``status`` as :meth:`step` would return it, ``cues_fused`` whether
+        the cues entered (all of them finite with variance > 0, as :meth:`update_cues` requires).
+        """
+        if not self.calibration:
+            raise RuntimeError("raw cues need the calibration states: Ekf(calibration=True)")
+        cues = [(c, v) for c, v in ((yaw_rate, yaw_var), (wheel_speed, wheel_var)) if c is not None]
+        cues_ok = bool(cues) and all(math.isfinite(c) and math.isfinite(v) and v > 0.0 for c, v in cues)
+        with np.errstate(all="ignore"):
+            x, p = self._predict()
+            zv = None if z is None and z_var is None else _valid_z(z, z_var)
+            status = StepStatus.PREDICT_ONLY if z is None and z_var is None else \
+                StepStatus.INPUT_INVALID if zv is None else StepStatus.SUCCESS
+            if zv is None and not cues_ok:
+                return self._commit(x, p, status), False
+            rows = [] if zv is None else [self._model_rows(x, *zv)]
+            if cues_ok:
+                innovation, h = cue_measurement(x, yaw_rate, wheel_speed)
+                rows.append((h, innovation, np.array([v for _, v in cues])))
+            h, innovation, var = (np.concatenate(parts) for parts in zip(*rows, strict=True)) if len(rows) > 1 \
+                else rows[0]
+            try:
+                x, p = update_linear(x, p, h, innovation, var, self._eye)
+            except np.linalg.LinAlgError:
+                x = np.full(self.dim, np.nan)
+            committed = self._commit(x, p, status)
+            return committed, cues_ok and committed is not StepStatus.RESET
 
     def fuse_pose(
         self,

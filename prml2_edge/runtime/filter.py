@@ -166,13 +166,17 @@ class PoseFilter:
         if self.calibrated and z_var is not None and infl != 1.0:
             z_var = z_var.copy()
             z_var[schema.Z.OMEGA_Z] *= infl
-        ekf_status = self.ekf.step(None if skip_model else est.z, None if skip_model else z_var)
-        model_used = ekf_status is StepStatus.SUCCESS
+        z, z_var = (None, None) if skip_model else (est.z, z_var)
         cues = standstill = False
         if self.calibrated:
-            cues = self._cues(values, valid, substituted, substitute_std)
+            # the model's z and the raw cues in one update (Ekf.step_with_cues)
+            ekf_status, cues = self.ekf.step_with_cues(z, z_var, *self._cue_values(values, valid, substituted,
+                                                                                  substitute_std))
             standstill = still and self._zero_velocity()
             self._odometry(values, valid)
+        else:
+            ekf_status = self.ekf.step(z, z_var)
+        model_used = ekf_status is StepStatus.SUCCESS
         pos = self.ekf.x[EkfState.POS]
         self.gnss_check.step(float(pos[0]), float(pos[1]))
         gnss_fused = fix is not None and self._fuse(fix, t_s)
@@ -264,8 +268,10 @@ class PoseFilter:
         p[EkfState.YAW, EkfState.YAW] += (std * dt) ** 2
         self.ekf.P = p
 
-    def _cues(self, values: np.ndarray, valid: np.ndarray, substituted: np.ndarray | None = None,
-              substitute_std: np.ndarray | None = None) -> bool:
+    def _cue_values(self, values: np.ndarray, valid: np.ndarray, substituted: np.ndarray | None = None,
+                    substitute_std: np.ndarray | None = None) -> tuple[float | None, float, float | None, float]:
+        """The raw cues of this row for :meth:`Ekf.step_with_cues`: ``(yaw rate or None, its variance, rear-axle
+        wheel speed or None, its variance)``; tracks the yaw rate's resolution on the way."""
         cfg = self.config
         yaw = float(values[_YAW_RATE]) if valid[_YAW_RATE] else None
         yaw_var = self._yaw_cue_var
@@ -281,11 +287,7 @@ class PoseFilter:
         w = _rear_speed(values, valid)
         if w is not None and w >= cfg.cue_min_speed_mps:
             wheel = w
-        if yaw is None and wheel is None:
-            return False
-        status = self.ekf.update_cues(yaw, yaw_var, wheel,  # type: ignore[union-attr]
-                                      cfg.wheel_cue_std_mps ** 2)
-        return status is StepStatus.SUCCESS
+        return yaw, yaw_var, wheel, cfg.wheel_cue_std_mps ** 2
 
     def _odometry(self, values: np.ndarray, valid: np.ndarray) -> None:
         """Integrate the rear-axle wheel speed along the filter's heading; a gap or slow driving restarts it."""

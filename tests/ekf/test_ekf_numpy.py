@@ -340,3 +340,29 @@ def test_set_calibration_restores_states_and_covariance() -> None:
     np.testing.assert_allclose(np.diag(ekf.cal_cov), [1e-6, 1e-6, 1e-5])
     assert ekf.update_cues(float("nan"), 1e-4) is ne.StepStatus.INPUT_INVALID
     assert ekf.update_standstill(-1.0) is ne.StepStatus.INPUT_INVALID
+
+
+def test_one_update_of_model_and_cues_is_the_two_updates_in_turn() -> None:
+    """Ekf.step_with_cues (the runtime's hot path) against step + update_cues: the same estimate over a drive
+    with an offset gyro and fast wheels, and the same statuses when the model's z or a cue is missing or bad."""
+    rng = np.random.default_rng(11)
+    joint, seq = ne.Ekf(calibration=True), ne.Ekf(calibration=True)
+    for ekf in (joint, seq):
+        ekf.x[EkfState.VEL.start] = 12.0
+    for k in range(1500):
+        omega = 0.15 * math.sin(0.3 * k * DT)
+        z = np.array([12.0, 0.0, 0.0, 0.0, omega]) + rng.normal(scale=0.01, size=5)
+        z_var = np.full(5, 1e-3) if k % 7 else np.full(5, np.nan)  # now and then an invalid model output
+        yaw = omega + 0.007 + rng.normal(scale=0.003) if k % 11 else None  # now and then no gyro
+        wheel = 12.12 + rng.normal(scale=0.02)
+        status, cues = joint.step_with_cues(z, z_var, yaw, 0.003**2, wheel, 0.02**2)
+        assert status is seq.step(z, z_var)
+        assert cues == (seq.update_cues(yaw, 0.003**2, wheel, 0.02**2) is StepStatus.SUCCESS)
+    np.testing.assert_allclose(joint.x, seq.x, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(joint.P, seq.P, rtol=1e-7, atol=1e-12)
+    assert abs(joint.cal[0] - 0.007) < 0.002  # the offset was learned from the model against the gyro
+    assert joint.step_with_cues(None, None) == (StepStatus.PREDICT_ONLY, False)
+    assert joint.step_with_cues(None, None, float("nan"), 1e-4) == (StepStatus.PREDICT_ONLY, False)
+    assert joint.step_with_cues(np.zeros(5), -np.ones(5), 0.0, 1e-4) == (StepStatus.INPUT_INVALID, True)
+    with pytest.raises(RuntimeError, match="calibration"):
+        ne.Ekf().step_with_cues(np.zeros(5), np.ones(5), 0.0, 1e-4)
