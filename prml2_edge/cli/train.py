@@ -60,6 +60,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="add a random CAN yaw-rate offset within +-DPS deg/s to each training window's input "
                              "(the target stays the truth), so that the model does not pass a gyro offset through "
                              "(default 0: off)")
+    parser.add_argument("--omega-residual", action="store_true",
+                        help="residual form: the model's omega_z is the CAN yaw rate plus a learned correction "
+                             "(zero transformer part at the start) instead of a direct output (default: off)")
     parser.add_argument("--pretrain-frac", type=float, metavar="F",
                         help="share of the epochs spent pretraining (default 0.7, the paper; the authors' code 0.8)")
     parser.add_argument("--beta", type=float, help="fine-tuning position-loss scale (default 8, the paper; "
@@ -89,10 +92,10 @@ def _run_baseline(args: argparse.Namespace) -> int:
     from prml2_edge.training.trainer import prepare_data
 
     t0 = time.monotonic()
-    if args.resume or args.no_finetune or args.init:
+    if args.resume or args.no_finetune or args.init or args.omega_residual:
         from prml2_edge.errors import ConfigError
 
-        raise ConfigError("--resume, --init and --no-finetune apply to --model prml2 only")
+        raise ConfigError("--resume, --init, --no-finetune and --omega-residual apply to --model prml2 only")
     preset = get_preset(args.preset)
     train_cfg = with_overrides(preset.train, {"window_stride": args.window_stride})
     tcfg = BaselineTrainConfig(epochs=6, max_train_windows=4096, lr=2e-3, num_threads=1)
@@ -160,6 +163,12 @@ def run(args: argparse.Namespace) -> int:
             dataset = dataset.for_vehicle(args.vehicle)
         init = _initial_model(args.init) if args.init else None
         model_cfg = init.cfg if init is not None else preset.model
+        if args.omega_residual:
+            if init is not None:
+                from prml2_edge.errors import ConfigError
+
+                raise ConfigError("--omega-residual changes the model's form: it cannot start from --init's model")
+            model_cfg = with_overrides(model_cfg, {"omega_residual": True})
         data = prepare_data(dataset, model_cfg, train_cfg)
         if info.is_main:
             stages = (f"{train_cfg.pretrain_epochs()} pretraining + {train_cfg.epochs - train_cfg.pretrain_epochs()} "

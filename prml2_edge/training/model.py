@@ -38,6 +38,8 @@ from prml2_edge import schema
 from prml2_edge.errors import ModelError
 from prml2_edge.training.presets import ModelConfig
 
+_YAW_IN = schema.SIGNAL_BY_NAME["yaw_rate_radps"].index  # the CAN yaw rate among the inputs
+_OMEGA_OUT = schema.Z.OMEGA_Z  # omega_z among the outputs
 STD_FLOOR = 1e-3  # smallest normalisation std [signal unit]; a constant signal must not divide by ~0
 _SOFTPLUS_ONE = math.log(math.e - 1.0)  # softplus(x) = 1 at this x
 
@@ -184,6 +186,8 @@ class Prml2Model(nn.Module):
             self.skip.weight.zero_()
             self.skip.bias.zero_()
             self.head.weight.mul_(0.1)
+            if cfg.omega_residual:  # the transformer's part of omega_z's correction starts at zero
+                self.head.weight[_OMEGA_OUT].zero_()
             self.head.bias.zero_()
             self.head.bias[cfg.num_states:] = _SOFTPLUS_ONE  # start at unit normalised variance
 
@@ -198,12 +202,20 @@ class Prml2Model(nn.Module):
         x = (np.asarray(onboard_rows, np.float64) - self.in_mean.double().numpy()) / self.in_std.double().numpy()
         x = self.features(torch.as_tensor(x)).numpy()
         y = (np.asarray(z_rows, np.float64) - self.z_mean.double().numpy()) / self.z_std.double().numpy()
+        if self.cfg.omega_residual:  # fit the correction to the CAN yaw rate, not omega_z itself
+            y[:, _OMEGA_OUT] -= self.omega_cue(torch.as_tensor(np.asarray(onboard_rows, np.float64))).numpy()
         ok = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(y), axis=1)
         x1 = np.concatenate([x[ok], np.ones((int(ok.sum()), 1))], axis=1)  # (N, 10)
         gram = x1.T @ x1 + ridge * len(x1) * np.diag([1.0] * x.shape[1] + [0.0])
         coef = np.linalg.solve(gram, x1.T @ y[ok])  # (10, 5)
         self.skip.weight.copy_(torch.as_tensor(coef[:-1].T, dtype=torch.float32))
         self.skip.bias.copy_(torch.as_tensor(coef[-1], dtype=torch.float32))
+
+    def omega_cue(self, onboard: torch.Tensor) -> torch.Tensor:
+        """The CAN yaw rate of raw SI ``onboard`` (..., 9) in normalised omega_z units (...): the residual
+        form's starting point (``cfg.omega_residual``)."""
+        w = _OMEGA_OUT
+        return (onboard[..., _YAW_IN] - self.z_mean[w].to(onboard.dtype)) / self.z_std[w].to(onboard.dtype)
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
         """The model's input features from normalised signals ``x`` (..., 9): ``x`` itself, or with
@@ -236,6 +248,10 @@ class Prml2Model(nn.Module):
         out = self.head(self.dec_norm(dec))  # (B, L-H or rows, 10)
         n = dec.shape[1]
         mean_n = out[..., : cfg.num_states] + self.skip(x[:, cfg.window_len - n :])  # (B, n, 5)
+        if cfg.omega_residual:  # omega_z = the CAN yaw rate + the correction
+            w = _OMEGA_OUT
+            cue = self.omega_cue(onboard[:, cfg.window_len - n :]).unsqueeze(-1)  # (B, n, 1)
+            mean_n = torch.cat([mean_n[..., :w], mean_n[..., w : w + 1] + cue, mean_n[..., w + 1 :]], dim=-1)
         var_n = F.softplus(out[..., cfg.num_states :]) + cfg.var_floor
         return mean_n, var_n
 

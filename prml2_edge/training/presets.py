@@ -42,6 +42,10 @@ class ModelConfig:
     # ~0.05 normalised units, too small for the first layer to learn from raw channels (see EDGE_NOTES).
     # 0: the nine normalised signals as they are (the paper; models exported before this option).
     wheel_diff_gain: float = 0.0
+    # True: omega_z's mean is the CAN yaw rate at the same step plus the model's correction (issue 26's residual
+    # form: at initialisation the correction is the least-squares linear one and the transformer's part is zero,
+    # so training starts from the gyro instead of learning to reproduce it). False: the paper's direct output.
+    omega_residual: bool = False
     num_signals: int = schema.NUM_SIGNALS
     num_states: int = schema.NUM_STATES
 

@@ -315,3 +315,27 @@ def test_cli_export_optimize_with_int8_quantises_the_fused_graph(trained, tmp_pa
     assert {"MultiHeadAttention", "MatMulInteger"} <= ops
     assert (tmp_path / "o8.opt.onnx").is_file() and (tmp_path / "o8.fp32.onnx").is_file()
     assert read_metadata(out).training["int8"] is True
+
+
+def test_omega_residual_model_exports_and_reexports_with_the_same_numbers(tmp_path):
+    """The residual form's yaw-rate pass-through is in the graph: onnxruntime matches torch, and a re-export from
+    the .onnx (config from the metadata, weights from the graph) computes the same numbers."""
+    from prml2_edge.training.export_onnx import model_from_onnx
+    from prml2_edge.training.presets import with_overrides
+
+    torch.manual_seed(4)
+    cfg = with_overrides(PRESET.model, {"omega_residual": True})
+    model = Prml2Model(cfg, NORM_MEAN, NORM_STD, [12.0, 0.0, 0.0, 0.0, 0.0], [7.0, 0.2, 1.2, 1.8, 0.2]).eval()
+    with torch.no_grad():  # distinct weights (the exporter folds identical constants into one)
+        for p in model.parameters():
+            p.add_(torch.randn_like(p) * 0.05)
+    ckpt = make_checkpoint(model, "tiny", PRESET.train, "fp-test", epoch=1, stage="pretrain")
+    path = export_onnx(model, metadata_for(model, ckpt), tmp_path / "r.onnx")
+    assert read_metadata(path).config["omega_residual"] is True
+    diff = parity(model, path, _windows(20))
+    assert diff["mean"] <= 1e-4 and diff["var"] <= 1e-4, diff
+    again, _, _ = model_from_onnx(path)
+    assert again.cfg.omega_residual
+    x = torch.as_tensor(_windows(3, seed=1))
+    with torch.no_grad():
+        torch.testing.assert_close(again(x)[0], model(x)[0])

@@ -167,3 +167,30 @@ def test_initial_state_places_z_in_ekf_layout():
     assert x0[0, schema.EkfState.VEL].tolist() == [10.0, 0.5]
     assert x0[0, schema.EkfState.ACC].tolist() == [1.0, 2.0]
     assert x0[0, schema.EkfState.OMEGA_Z].item() == pytest.approx(0.1)
+
+
+def test_omega_residual_starts_at_the_can_yaw_rate_and_fits_the_correction(rng):
+    """--omega-residual: omega_z's mean is the CAN yaw rate plus the correction; at initialisation the
+    transformer's part is zero, so with a zero skip the output is the gyro itself, and init_skip fits the
+    correction (a gyro reading 10 % high and 0.01 rad/s off: the least-squares correction undoes both)."""
+    cfg = with_overrides(TINY, {"omega_residual": True})
+    model = _model(cfg=cfg).eval()
+    yaw = schema.SIGNAL_BY_NAME["yaw_rate_radps"].index
+    x = torch.as_tensor(rng.normal(size=(2, 250, 9)), dtype=torch.float32)
+    with torch.no_grad():
+        mean, _ = model(x)
+    torch.testing.assert_close(mean[..., schema.Z.OMEGA_Z], x[:, schema.ENCODER_LEN:, yaw], atol=1e-5, rtol=0)
+    plain = _model(cfg=TINY).eval()
+    with torch.no_grad():
+        assert not torch.allclose(plain(x)[0][..., schema.Z.OMEGA_Z], x[:, schema.ENCODER_LEN:, yaw], atol=1e-3)
+    rows = rng.normal(size=(4000, 9))
+    omega = rng.normal(scale=0.2, size=4000)
+    rows[:, yaw] = 1.1 * omega + 0.01
+    z = np.zeros((4000, 5))
+    z[:, schema.Z.OMEGA_Z] = omega
+    model.init_skip(rows, z, ridge=0.0)
+    with torch.no_grad():
+        out = model.forward_normalised(torch.as_tensor(np.repeat(rows[None, :250], 1, 0), dtype=torch.float32))[0]
+        omega_hat = (out * model.z_std + model.z_mean)[0, :, schema.Z.OMEGA_Z].numpy()
+    np.testing.assert_allclose(omega_hat, omega[schema.ENCODER_LEN:250], atol=1e-4)
+    assert model_config_from_dict({**TINY.__dict__, "omega_residual": True}) == cfg
