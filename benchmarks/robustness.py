@@ -133,12 +133,19 @@ def summarise(res: dict, names: tuple[str, str], keys: set[str] | None = None) -
     return out
 
 
+def reported_groups(split: str) -> tuple[str, ...]:
+    """The groups a run reports: the test drives (fleet and held-out car), or with ``--split val`` the fleet's
+    validation drives, so that candidate models can be compared without touching test."""
+    return ("val",) if split == "val" else GROUPS
+
+
 def build_tasks(specs: dict[str, list[dict]], case_offsets: dict[str, float], args) -> tuple[dict, list]:
     """Re-simulated windows: ``{case: {group: [WindowTask]}}`` and the validation windows (no offset)."""
     tasks: dict = {}
+    groups = reported_groups(args.split)
     for case, off in case_offsets.items():
-        drives = _Drives({g: [resimulate(s, off, args.minutes) for s in specs[g]] for g in GROUPS})
-        tasks[case] = {g: split_tasks(drives, g, max_windows=args.max_windows) for g in GROUPS}
+        drives = _Drives({g: [resimulate(s, off, args.minutes) for s in specs[g]] for g in groups})
+        tasks[case] = {g: split_tasks(drives, g, max_windows=args.max_windows) for g in groups}
     val = _Drives({"val": [resimulate(s, 0.0, args.minutes) for s in specs["val"]]})
     return tasks, split_tasks(val, "val", max_windows=args.max_windows)
 
@@ -159,7 +166,7 @@ def run_cases(args, specs: dict[str, list[dict]], case_offsets: dict[str, float]
     results: dict = {}
     for case in case_offsets:
         bar.set_postfix(case)
-        flat = [t for g in GROUPS for t in tasks[case][g]]
+        flat = [t for g in reported_groups(args.split) for t in tasks[case][g]]
         results[case] = run_all([model, osd], flat, jobs=args.workers, on_done=tick) if flat else \
             {model.name: [], osd.name: []}
     bar.close()
@@ -172,10 +179,10 @@ def run_cases(args, specs: dict[str, list[dict]], case_offsets: dict[str, float]
 def report(results: dict, tasks: dict, specs: dict[str, list[dict]]) -> dict:
     """Per group: overall and per car summaries."""
     names = ("PRML2", "OSD-Baseline")
-    car_of = {s["name"]: s["vehicle"] for g in GROUPS for s in specs[g]}
     ref_tasks = next(iter(tasks.values()))
+    car_of = {s["name"]: s["vehicle"] for g in ref_tasks for s in specs[g]}
     out: dict = {}
-    for g in GROUPS:
+    for g in ref_tasks:
         keys = {t.key for t in ref_tasks[g]}
         if not keys:
             continue
@@ -251,6 +258,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cars", default=None, help="comma-separated cars (default: every car of the recipe)")
     ap.add_argument("--minutes", type=float, default=None, help="cut every drive to at most this long [min]")
     ap.add_argument("--workers", type=int, default=1, help="worker processes of the protocol")
+    ap.add_argument("--split", choices=("test", "val"), default="test",
+                    help="score the test drives (default), or the fleet's validation drives to choose between models")
     ap.add_argument("--json", default=str(OUT))
     args = ap.parse_args(argv)
     started, t0 = time.strftime("%Y-%m-%d %H:%M:%S"), time.monotonic()
