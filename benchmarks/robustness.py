@@ -25,7 +25,10 @@ of mean drifts over the same windows; RMSE: ``prml2_edge.evaluation.metrics.pair
 Usage::
 
     .venv/bin/python benchmarks/robustness.py [--max-windows 2] [--cars reference,van_fwd] [--minutes 3]
-        [--workers 2] [--model export/default/prml2_edge.onnx] [--offset-dps 0.4]
+        [--workers 2] [--model export/default/prml2_edge.onnx] [--offset-dps 0.4] [--split val]
+
+``--split val`` reports the fleet's validation drives instead (re-simulated the same way), so that candidate
+models are compared without touching test; OSD is then tuned on the drives it is scored on.
     .venv/bin/python benchmarks/render_tables.py   # the docs/evaluation.md table from the JSON
 """
 
