@@ -58,17 +58,34 @@ def profile(path: str | Path, threads: int = 1, runs: int = 200) -> dict:
         events = json.loads(Path(sess.end_profiling()).read_text())
     us: collections.Counter = collections.Counter()
     nodes: collections.Counter = collections.Counter()
+    by_part: collections.Counter = collections.Counter()
     for ev in events:
         if ev.get("cat") == "Node" and ev.get("name", "").endswith("_kernel_time"):
             op = ev["args"]["op_name"]
             us[op] += ev["dur"]
             nodes[op] += 1
+            by_part[model_part(ev["name"])] += ev["dur"]
     n_inf = runs + 10
     total = sum(us.values()) / n_inf
     ops = [{"op": op, "us": v / n_inf, "fraction": v / n_inf / total, "nodes": nodes[op] / n_inf}
            for op, v in us.most_common()]
+    parts = {k: {"us": v / n_inf, "fraction": v / n_inf / total} for k, v in by_part.most_common()}
     return {"model": str(path), "threads": threads, "runs": runs, "wall_ms_profiled": wall_ms,
-            "kernel_us": total, "nodes_per_inference": sum(nodes.values()) / n_inf, "ops": ops}
+            "kernel_us": total, "nodes_per_inference": sum(nodes.values()) / n_inf, "ops": ops, "parts": parts}
+
+
+def model_part(node: str) -> str:
+    """The part of the transformer a node belongs to, from its exported name (``/model/encoder.0/attn/...``):
+    ``encoder`` (its layers and final norm), ``decoder`` (its layers, final norm, head and skip) or ``input``
+    (normalisation, features, input projection, positions). Issue 29: the encoder is the part that re-reads
+    the 150 samples it saw one inference before."""
+    path = node.removesuffix("_kernel_time").lstrip("/").removeprefix("model/")
+    first = path.split("/", 1)[0]
+    if first.startswith(("encoder", "enc_norm")):
+        return "encoder"
+    if first.startswith(("decoder", "dec_norm", "head", "skip")):
+        return "decoder"
+    return "input"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -87,6 +104,7 @@ def main(argv: list[str] | None = None) -> int:
             doc["profiles"][f"{name} {label}"] = res
             print(f"{name} {label}: {res['kernel_us'] / 1e3:.2f} ms in {res['nodes_per_inference']:.0f} nodes "
                   f"({args.threads} thread(s), profiled wall {res['wall_ms_profiled']:.2f} ms)")
+            print("  by part: " + ", ".join(f"{k} {100 * v['fraction']:.0f} %" for k, v in res["parts"].items()))
             for op in res["ops"][:8]:
                 print(f"  {op['op']:<26} {op['us']:9.1f} us {100 * op['fraction']:5.1f} %  {op['nodes']:4.0f} nodes")
     doc["load_average_end"] = load_average()
