@@ -81,6 +81,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="skip the final validation (z RMSE, 60 s dead reckoning)")
 
 
+def _model_config(args: argparse.Namespace, preset_model, init):
+    """The model's config: ``--init``'s, else the preset's, with ``--omega-residual`` applied."""
+    from prml2_edge.training.presets import with_overrides
+
+    cfg = init.cfg if init is not None else preset_model
+    if not args.omega_residual:
+        return cfg
+    if init is not None:
+        from prml2_edge.errors import ConfigError
+
+        raise ConfigError("--omega-residual changes the model's form: it cannot start from --init's model")
+    return with_overrides(cfg, {"omega_residual": True})
+
+
 def _run_baseline(args: argparse.Namespace) -> int:
     """``--model NAME`` for a learned baseline: same data, windows and statistics as PRML2's trainer."""
     from dataclasses import replace
@@ -162,13 +176,7 @@ def run(args: argparse.Namespace) -> int:
         if args.vehicle:
             dataset = dataset.for_vehicle(args.vehicle)
         init = _initial_model(args.init) if args.init else None
-        model_cfg = init.cfg if init is not None else preset.model
-        if args.omega_residual:
-            if init is not None:
-                from prml2_edge.errors import ConfigError
-
-                raise ConfigError("--omega-residual changes the model's form: it cannot start from --init's model")
-            model_cfg = with_overrides(model_cfg, {"omega_residual": True})
+        model_cfg = _model_config(args, preset.model, init)
         data = prepare_data(dataset, model_cfg, train_cfg)
         if info.is_main:
             stages = (f"{train_cfg.pretrain_epochs()} pretraining + {train_cfg.epochs - train_cfg.pretrain_epochs()} "
