@@ -106,8 +106,9 @@ def test_a_failed_inference_counts_and_gives_no_output():
 
 @pytest.mark.parametrize("asynchronous", [False, True])
 def test_the_localizer_runs_a_real_model_either_way(tmp_path, asynchronous):
-    drive = simulate_drive(0.15, 1.0, 11)  # 9 s
+    drive = simulate_drive(0.3, 1.0, 11)  # 18 s: the async worker must finish windows while rows are fed flat out
     model = OnnxModel(make_kinematic_model(tmp_path / "k.onnx"))
+    model.step(drive.onboard[: schema.WINDOW_LEN].astype(np.float32))  # warm: a cold session's first run is slow
     loc = StreamingLocalizer(model, LocalizerConfig(async_inference=asynchronous))
     assert isinstance(loc.estimator, AsyncEstimator if asynchronous else Estimator)
     x0 = np.zeros(EkfState.DIM)
