@@ -157,6 +157,11 @@ def filter_ablation(doc: dict) -> list[str]:
     return fa.markdown(doc)
 
 
+def error_budget(doc: dict) -> list[str]:
+    import error_budget as eb
+    return eb.markdown(doc)
+
+
 RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., list[str]]]] = {
     "latency": (("latency",), latency),
     "throughput": (("replay", "training"), throughput),
@@ -170,6 +175,7 @@ RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., list[str]]]] = {
     "robustness": (("robustness",), robustness),
     "cue_consistency": (("cue_consistency",), cue_consistency),
     "filter_ablation": (("filter_ablation",), filter_ablation),
+    "error_budget": (("error_budget",), error_budget),
 }
 
 
