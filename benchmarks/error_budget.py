@@ -15,8 +15,10 @@ error names a job the model has no reason to do. Then, per drive, **what could t
 the gain error left by a least-squares fit of the standstill-calibrated CAN yaw rate over the whole drive (moving
 above 5 m/s and turning above 3 °/s) against ``a_y / v`` and against the rear wheels' difference over the car's
 geometric track (less a fitted ``radius difference x v``), next to the drawn gain itself (what assuming 0 leaves).
-Fitted over the whole drive, after the fact: an upper bound for an online estimate. Simulated drives only (their truth); a real car's budget differs
-(its lateral accelerometer reads roll, its gyro gain is a property of the unit, not of the drive).
+Fitted over the whole drive, after the fact: an upper bound for an online estimate.
+
+Simulated drives only (their truth); a real car's budget differs (its lateral accelerometer reads roll, its gyro
+gain is a property of the unit, not of the drive).
 
 Usage::
 
@@ -135,8 +137,8 @@ def markdown(doc: dict) -> list[str]:
            "| case | " + " | ".join(f"{s} ({doc['splits'][s]['n_windows']})" for s in splits) + " |",
            "|---|" + "---|" * len(splits)]
     for case in CASES:
-        cells = [f"{doc['splits'][s]['cases'][case]['rmse_mean_m']:.2f} ({doc['splits'][s]['cases'][case]['ratio']:.2f}×)"
-                 for s in splits]
+        row = (doc["splits"][s]["cases"][case] for s in splits)
+        cells = [f"{c['rmse_mean_m']:.2f} ({c['ratio']:.2f}×)" for c in row]
         out.append(f"| {case} | " + " | ".join(cells) + " |")
     out += ["", "Per car: the reference, the drive's gyro gain known, and the drawn gain error (rms over the windows):",
             "", "| split | car | OSD m | no gyro scale m | gain error rms % |", "|---|---|---:|---:|---:|"]

@@ -35,7 +35,7 @@ from prml2_edge.runtime.estimator import Estimate
 from prml2_edge.runtime.gnss_check import FixNoise, GnssCheck, GnssCheckConfig
 from prml2_edge.runtime.initial_pose import InitialPose, initial_state
 from prml2_edge.runtime.rows import GnssFix
-from prml2_edge.schema import EkfState
+from prml2_edge.schema import CalState, EkfState
 
 _SIG = schema.SIGNAL_BY_NAME
 _YAW_RATE = _SIG["yaw_rate_radps"].index
@@ -161,12 +161,16 @@ class PoseFilter:
         skip_model = still and self.config.standstill_skips_model
         z_var = est.z_var
         infl = self.omega_var_inflation
-        if self._resolution_measured and self.yaw_resolution_radps >= self.config.coarse_yaw_resolution_radps:
+        coarse = self._resolution_measured and self.yaw_resolution_radps >= self.config.coarse_yaw_resolution_radps
+        if coarse:
             infl = self.omega_var_inflation_coarse
         if self.calibrated and z_var is not None and infl != 1.0:
             z_var = z_var.copy()
             z_var[schema.Z.OMEGA_Z] *= infl
         z, z_var = (None, None) if skip_model else (est.z, z_var)
+        if coarse and self.calibrated and z is not None and self.config.coarse_model_clamp_sigma is not None \
+                and valid[_YAW_RATE] and (substituted is None or not substituted[_YAW_RATE]):
+            z = self._held_to_reading(z, float(values[_YAW_RATE]))
         cues = standstill = False
         if self.calibrated:
             # the model's z and the raw cues in one update (Ekf.step_with_cues)
@@ -185,6 +189,20 @@ class PoseFilter:
         if gnss_fused and self.calibrated:
             self._scale_from_gnss(fix, t_s)
         return FilterStep(ekf_status, model_used, gnss_fused, cues, standstill)
+
+    def _held_to_reading(self, z: np.ndarray, yaw_rate: float) -> np.ndarray:
+        """``z`` with its omega_z inside the interval a coarse CAN reading ``yaw_rate`` allows: the reading less the
+        offset estimate, +- half the measured resolution + ``coarse_model_clamp_sigma`` white-noise sigmas."""
+        cfg = self.config
+        half = 0.5 * self.yaw_resolution_radps + cfg.coarse_model_clamp_sigma * cfg.yaw_cue_std_radps
+        centre = yaw_rate - float(self.ekf.x[CalState.YAW_RATE_OFFSET.start])
+        w = float(z[schema.Z.OMEGA_Z])
+        held = min(max(w, centre - half), centre + half)
+        if held == w:
+            return z
+        z = z.copy()
+        z[schema.Z.OMEGA_Z] = held
+        return z
 
     def _try_start(self, values: np.ndarray, valid: np.ndarray, t_s: float, fix: GnssFix | None) -> FilterStep:
         pose = self.initial_pose if self.ekf is None else None

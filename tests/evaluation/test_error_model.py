@@ -192,3 +192,31 @@ def test_next_to_a_coarse_gyro_the_model_carries_the_yaw_rate():
     coarse = _coarse_gyro_heading_error_dps(LocalizerConfig())
     fine_rule = _coarse_gyro_heading_error_dps(LocalizerConfig(coarse_yaw_resolution_radps=math.inf))
     assert fine_rule > 2.5 and coarse < 0.33 * fine_rule, (coarse, fine_rule)
+
+
+def test_next_to_a_coarse_gyro_the_model_is_held_inside_the_readings_interval():
+    """A 1.28 deg/s-step CAN yaw rate dithering between 0 and one step (a true 0.64 deg/s) while the model, on a
+    road it never saw, says 5.64 deg/s: once the resolution is measured the model carries the yaw rate (its
+    metadata inflation, 1 here) and takes the filter with it; held inside each reading's interval (half a step and
+    a sigma about it) it cannot take the filter further from the truth than a step and a sigma."""
+    step, true_dps = 1.28, 0.64
+    n = schema.WINDOW_LEN + 600
+    onboard = np.zeros((n, schema.NUM_SIGNALS))
+    onboard[:, list(schema.WHEEL_SPEED_INDICES)] = 10.0
+    onboard[:, schema.SIGNAL_BY_NAME["speedometer_mps"].index] = 10.0
+    onboard[1::2, schema.SIGNAL_BY_NAME["yaw_rate_radps"].index] = math.radians(step)
+    x0 = np.zeros(EkfState.DIM)
+    x0[EkfState.VEL.start] = 10.0
+    x0[EkfState.OMEGA_Z.start] = math.radians(true_dps)
+
+    def omega_error_dps(clamp: float | None) -> float:
+        cfg = LocalizerConfig(yaw_cue_resolution_radps=math.radians(0.01), coarse_model_clamp_sigma=clamp)
+        model = _SlowYawErrorModel(np.full(n, math.radians(5.0)), 1.0)
+        model.bias = StandstillBias(0.0, 0.0, 100)
+        loc = StreamingLocalizer(model, cfg)
+        traj = loc.run_arrays(onboard, x0, start_index=schema.WINDOW_LEN - 1)
+        assert loc.filter.yaw_resolution_radps == pytest.approx(math.radians(step))
+        return abs(math.degrees(float(np.mean(traj.x[-100:, EkfState.OMEGA_Z.start]))) - true_dps)
+
+    free, held = omega_error_dps(None), omega_error_dps(1.0)
+    assert free > 2.5 and held < step + 0.1 and held < 0.3 * free, (free, held)
