@@ -464,8 +464,8 @@ def model_measurement(x: np.ndarray, offset_share: float = 1.0) -> tuple[np.ndar
     ``omega_z + offset_share * offset + model_bias``; ``v_y``, ``a_x``, ``a_y`` as the plain selection.
     ``offset_share`` is how much of the CAN yaw-rate offset the model's omega_z carries (1: all of it, so the
     model can never tell the filter the offset; 0: none, so the gyro-minus-model difference measures the offset
-    less the model's own slow error, :class:`CalibrationNoise`). The default 1 is what the training's
-    differentiable EKF (``training/ekf_torch.py``) still does; the runtime's :class:`Ekf` passes
+    less the model's own slow error, :class:`CalibrationNoise`). The torch twin
+    (``training/ekf_torch.update_model_calibrated``) takes the same argument; the runtime's :class:`Ekf` passes
     :attr:`CalibrationNoise.model_offset_share` (0) and keeps its own H template (:meth:`Ekf._update_model`).
     """
     h = np.zeros((MEAS_DIM, FULL_DIM))

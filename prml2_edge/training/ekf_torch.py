@@ -254,8 +254,10 @@ def update_linear(x: Tensor, P: Tensor, h: Tensor, innovation: Tensor, meas_var:
     return x_new, symmetrize(p_new)
 
 
-def update_model_calibrated(x: Tensor, P: Tensor, z: Tensor, z_var: Tensor) -> tuple[Tensor, Tensor]:
-    """The model's z (B, 5) in the calibrated layout, as :func:`numpy_ekf.model_measurement`; x (B, 11)."""
+def update_model_calibrated(x: Tensor, P: Tensor, z: Tensor, z_var: Tensor,
+                            offset_share: float = 1.0) -> tuple[Tensor, Tensor]:
+    """The model's z (B, 5) in the calibrated layout, as :func:`numpy_ekf.model_measurement` with the same
+    ``offset_share`` (the runtime's is :attr:`numpy_ekf.CalibrationNoise.model_offset_share`); x (B, 11)."""
     b = x.shape[0]
     idx = _z_index(x.device)
     k_idx, by_idx, bm_idx = CalState.WHEEL_SCALE.start, CalState.YAW_RATE_OFFSET.start, CalState.MODEL_OMEGA_BIAS.start
@@ -264,11 +266,11 @@ def update_model_calibrated(x: Tensor, P: Tensor, z: Tensor, z_var: Tensor) -> t
     h[:, torch.arange(MEAS_DIM), idx] = 1.0
     k = x[:, k_idx]
     h[:, vx_row, _VX] = 1.0 + k
-    h[:, w_row, by_idx] = 1.0
+    h[:, w_row, by_idx] = offset_share
     h[:, w_row, bm_idx] = 1.0
     hx = x.index_select(-1, idx).clone()
     hx[:, vx_row] = (1.0 + k) * x[:, _VX]
-    hx[:, w_row] = x[:, _OMEGA] + x[:, by_idx] + x[:, bm_idx]
+    hx[:, w_row] = x[:, _OMEGA] + offset_share * x[:, by_idx] + x[:, bm_idx]
     return update_linear(x, P, h, z - hx, z_var)
 
 
@@ -287,20 +289,21 @@ def cue_measurement(x: Tensor, yaw_rate: Tensor, wheel_speed: Tensor) -> tuple[T
 
 
 def run_filter_calibrated(x0: Tensor, P0: Tensor, z: Tensor, z_var: Tensor, cues: Tensor, cue_var: Tensor,
-                          Q: Tensor, dt_s: float = schema.DT_S, model_bias_decay: float = 1.0
-                          ) -> tuple[Tensor, Tensor]:
+                          Q: Tensor, dt_s: float = schema.DT_S, model_bias_decay: float = 1.0,
+                          offset_share: float = 1.0) -> tuple[Tensor, Tensor]:
     """The calibrated filter over a batch: each step predict, model z update, raw-cue update.
 
     ``x0`` (B, 11), ``P0`` (B, 11, 11), ``z``/``z_var`` (B, T, 5), ``cues``/``cue_var`` (B, T, 2)
     ``[CAN yaw rate rad/s, rear-axle wheel speed m/s]``, ``Q`` (11, 11). The first step updates
-    without predicting. Returns ``x`` (B, T, 11) and ``P`` (B, T, 11, 11).
+    without predicting. ``offset_share``: of the CAN yaw-rate offset in the model's omega_z
+    (:func:`update_model_calibrated`). Returns ``x`` (B, T, 11) and ``P`` (B, T, 11, 11).
     """
     x, P = x0, P0
     xs, ps = [], []
     for t in range(z.shape[1]):
         if t > 0:
             x, P = predict(x, P, Q, dt_s, model_bias_decay)
-        x, P = update_model_calibrated(x, P, z[:, t], z_var[:, t])
+        x, P = update_model_calibrated(x, P, z[:, t], z_var[:, t], offset_share)
         innovation, h = cue_measurement(x, cues[:, t, 0], cues[:, t, 1])
         x, P = update_linear(x, P, h, innovation, cue_var[:, t])
         xs.append(x)

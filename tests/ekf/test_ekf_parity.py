@@ -220,8 +220,10 @@ def test_run_filter_shape_checks() -> None:
         et.run_filter(torch.zeros(8), torch.eye(8), torch.zeros(2, 3, 5), torch.ones(2, 3, 4))
 
 
-def test_float64_parity_with_numpy_calibrated_over_3000_steps() -> None:
-    """The calibration states, the model bias and the raw cues: both twins agree to 1e-9 over 3000 steps."""
+@pytest.mark.parametrize("offset_share", [1.0, ne.CalibrationNoise.model_offset_share])
+def test_float64_parity_with_numpy_calibrated_over_3000_steps(offset_share: float) -> None:
+    """The calibration states, the model bias and the raw cues: both twins agree to 1e-9 over 3000 steps, with the
+    model's omega_z carrying the whole CAN yaw-rate offset and with the runtime's share of it."""
     rng = np.random.default_rng(7)
     n = 3000
     z, z_var = drive(rng, n, (-4.0, -1.0))
@@ -235,7 +237,7 @@ def test_float64_parity_with_numpy_calibrated_over_3000_steps() -> None:
     for t in range(n):
         if t > 0:
             ekf.x, ekf.P = ne.predict(ekf.x, ekf.P, ekf.Q, DT, ekf.model_bias_decay)
-        ekf.x, ekf.P = ne.update_model_calibrated(ekf.x, ekf.P, z[t], z_var[t])
+        ekf.x, ekf.P = ne.update_model_calibrated(ekf.x, ekf.P, z[t], z_var[t], offset_share)
         assert ekf.update_cues(yaw[t], cue_var[t, 0], wheel[t], cue_var[t, 1]) is ne.StepStatus.SUCCESS
         xs_np.append(ekf.x.copy())
         ps_np.append(ekf.P.copy())
@@ -244,7 +246,7 @@ def test_float64_parity_with_numpy_calibrated_over_3000_steps() -> None:
         xs_t, ps_t = et.run_filter_calibrated(
             torch.tensor(x0)[None], torch.tensor(P0)[None], torch.tensor(z)[None], torch.tensor(z_var)[None],
             torch.tensor(cues)[None], torch.tensor(cue_var)[None], torch.tensor(Q),
-            model_bias_decay=ekf.model_bias_decay)
+            model_bias_decay=ekf.model_bias_decay, offset_share=offset_share)
     assert ekf.model_bias_decay < 1.0
     assert xs_t.shape == (1, n, schema.CalState.FULL_DIM)
     # the position variance grows to ~1e3 m^2 here: 1e-9 relative to each entry's size
