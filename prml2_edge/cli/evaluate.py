@@ -31,7 +31,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-plots", action="store_true", help="do not write PNG figures")
     parser.add_argument("--calibration", choices=("off", "on", "both"), default="both",
                         help="the filter's self-calibration (calibration states, raw yaw-rate and wheel cues): "
-                             "off, on, or both side by side as NAME and 'NAME +cal' (default both)")
+                             "off, on (every learned model; the OSD baseline stays the paper's), or both side "
+                             "by side as NAME and 'NAME +cal' (default both)")
     parser.add_argument("--preroll-s", type=float, default=30.0, metavar="S",
                         help="deployment protocol: every test window also after S s of GNSS-aided driving "
                              "(10 Hz fixes, 1.5 m); 0 skips it (default 30)")

@@ -260,3 +260,21 @@ def test_filter_variants_replay_the_models_outputs_exactly(tiny):
     assert not np.array_equal(no_cues.pose, direct.pose)
     silent = run_window(spec, task, model=ReplayModel([], rec.metadata))  # nothing recorded: no model step
     assert silent.model_steps == 0
+
+
+def test_calibration_on_keeps_the_osd_reference_and_runs_table_3_through_the_same_filter(tiny, tmp_path):
+    """``--calibration on``: the learned model through the calibrating filter, OSD as the paper's baseline (the
+    reference of every ratio), and Table 3's guard-less variants through the calibrating filter too: the guard
+    never fires on this model, so "no guard" is the full model's row to the metre."""
+    data, model = tiny
+    out = tmp_path / "report"
+    rc = main(["evaluate", "--data", str(data), "--models", "osd", f"PRML2={model}", "--out", str(out),
+               "--window-s", str(WINDOW_S), "--max-windows", "1", "--calibration", "on", "--preroll-s", "0",
+               "--no-tum", "--no-plots"])
+    assert rc == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert set(metrics["models"]) == {"OSD-Baseline", "PRML2"}
+    assert metrics["specs"]["PRML2"]["calibration"] and not metrics["specs"]["OSD-Baseline"]["calibration"]
+    rows = {(r["guard"], r["uncertainty"]): r["dead_reckoning_60s"] for r in metrics["ablation"]["rows"]}
+    assert rows[(True, True)]["guard_fire_rate"] == 0.0
+    assert rows[(False, True)]["rmse_mean_m"] == pytest.approx(rows[(True, True)]["rmse_mean_m"], abs=1e-9)
