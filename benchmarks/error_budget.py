@@ -84,7 +84,9 @@ def measure_split(dataset, split: str) -> dict:
     cars = {d.name: str(d.meta.get("vehicle", "?")) for d in dataset.drives}
     rmse: dict[str, list[float]] = {c: [] for c in CASES}
     per_car: dict[str, dict[str, list[float]]] = {}
+    car_scales: dict[str, list[float]] = {}
     for task in split_tasks(dataset, split):
+        car_scales.setdefault(cars[task.drive], []).append(scales[task.drive])
         for case, (w, vx, vy) in window_cases(task, scales[task.drive]).items():
             err = integrate(w, vx, vy, task.pose_gt[0]) - task.pose_gt[:, :2]
             r = float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
@@ -94,15 +96,8 @@ def measure_split(dataset, split: str) -> dict:
     return {"n_windows": len(rmse[CASES[0]]),
             "cases": {c: {"rmse_mean_m": float(np.mean(v)), "ratio": float(np.mean(v)) / ref} for c, v in rmse.items()},
             "per_car": {car: {c: float(np.mean(v)) for c, v in d.items()} for car, d in per_car.items()},
-            "yaw_scale_error_rms_pct": {car: 100.0 * float(np.sqrt(np.mean([scales[t.drive] ** 2 for t in ts])))
-                                        for car, ts in _tasks_by_car(dataset, split, cars).items()}}
-
-
-def _tasks_by_car(dataset, split: str, cars: dict[str, str]) -> dict[str, list]:
-    out: dict[str, list] = {}
-    for t in split_tasks(dataset, split):
-        out.setdefault(cars[t.drive], []).append(t)
-    return out
+            "yaw_scale_error_rms_pct": {car: 100.0 * float(np.sqrt(np.mean(np.square(v))))
+                                        for car, v in car_scales.items()}}
 
 
 def gain_evidence(drive) -> dict[str, float] | None:
