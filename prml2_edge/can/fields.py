@@ -36,6 +36,9 @@ class SplitField:
 
     def read(self, decoded: dict) -> int:
         """The field's value from cantools' decoded (raw-scaled, factor 1) signal values."""
+        if len(self.parts) == 1:  # the usual case (once per frame on the hot path): no loop
+            name, width = self.parts[0]
+            return int(decoded[name]) & ((1 << width) - 1)
         value, shift = 0, 0
         for name, width in self.parts:
             value |= (int(decoded[name]) & ((1 << width) - 1)) << shift

@@ -134,6 +134,11 @@ class Assembler:
         self._stuck_since = {c.index: -math.inf for c in self.stuck_checks}  # time the held value arrived [s]
         self._stuck_lo = {c.index: np.full(len(c.witness), math.inf) for c in self.stuck_checks}
         self._stuck_hi = {c.index: np.full(len(c.witness), -math.inf) for c in self.stuck_checks}
+        # signal -> the (lo, hi, position) of every witness span it widens (_track_stuck, once per value)
+        self._witness_of: dict[int, list[tuple[np.ndarray, np.ndarray, int]]] = {}
+        for c in self.stuck_checks:
+            for j, w in enumerate(c.witness):
+                self._witness_of.setdefault(w, []).append((self._stuck_lo[c.index], self._stuck_hi[c.index], j))
         self._frozen = np.zeros(schema.NUM_SIGNALS, dtype=bool)
         self.last_frame_t_s = -math.inf  # newest frame of any kind [s]
         self._jump_t_s: float | None = None  # timestamp of an unconfirmed clock jump [s]
@@ -220,16 +225,16 @@ class Assembler:
             if back:
                 self._rebase(t - self.last_frame_t_s)
                 frame.clock_jump = True
-            if t - self._t(self._k_next) > self.max_gap_s:
+            if t - (self._t0 + self._k_next * self.dt_s) > self.max_gap_s:  # (self._t, inlined: once per frame)
                 self._reanchor(t)
             else:
-                while t > self._t(self._k_next) + self.eps_s:
+                while t > self._t0 + self._k_next * self.dt_s + self.eps_s:
                     rows.append(self._emit(recv_ns))
         self.last_frame_t_s = max(self.last_frame_t_s, t)
         status = frame.status
         if status is not FrameStatus.USED and status is not FrameStatus.REJECTED_INVALID:
             return status, rows
-        late = self._k_next > 0 and t <= self._t(self._k_next - 1) + self.eps_s
+        late = self._k_next > 0 and t <= self._t0 + (self._k_next - 1) * self.dt_s + self.eps_s
         applied = 0
         for i, value, ok in zip(frame.index, frame.value_si, frame.ok, strict=True):
             if t < self.last_t_s[i]:
@@ -306,11 +311,11 @@ class Assembler:
             self._stuck_lo[i][:] = math.inf
             self._stuck_hi[i][:] = -math.inf
             self._frozen[i] = False
-        for check in self.stuck_checks:
-            for j, w in enumerate(check.witness):
-                if w == i:
-                    self._stuck_lo[check.index][j] = min(self._stuck_lo[check.index][j], value)
-                    self._stuck_hi[check.index][j] = max(self._stuck_hi[check.index][j], value)
+        for lo, hi, j in self._witness_of.get(i, ()):
+            if value < lo[j]:  # (min() and max() as before: the old bound unless the value is beyond it)
+                lo[j] = value
+            if value > hi[j]:
+                hi[j] = value
 
     def _check_stuck(self, t_k: float) -> tuple[int, ...]:
         """Freeze checked signals held too long while their witnesses moved; return the newly frozen ones."""

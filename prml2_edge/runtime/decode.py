@@ -59,6 +59,9 @@ class InjectionMonitor:
     intruder_frames: int = 0
     episodes: int = 0
 
+    def __post_init__(self) -> None:
+        self.max_frames = RATE_MARGIN * self.rate_hz * RATE_WINDOW_S + 1  # more in the window: a second sender
+
     def rate(self, t: float, payload: bytes) -> None:
         """Count a frame at ``t`` [s] (not an exact repeat of the previous payload) in the rate window."""
         if payload == self.last_payload:
@@ -71,7 +74,7 @@ class InjectionMonitor:
         while times and times[0] <= t - RATE_WINDOW_S:
             times.popleft()
         n = len(times)
-        if n > RATE_MARGIN * self.rate_hz * RATE_WINDOW_S + 1:
+        if n > self.max_frames:
             self.observed_hz = n / RATE_WINDOW_S
             self.evidence(t)
 
@@ -218,8 +221,9 @@ class FrameDecoder:
             status, gap = self._counter(plan, plan.counter.read(decoded), t_s)
         suspected = False
         if mon is not None:
-            self.last_evidence_t = max(self.last_evidence_t, mon.evidence_t)
-            suspected = mon.suspected(t_s)
+            if mon.evidence_t > self.last_evidence_t:
+                self.last_evidence_t = mon.evidence_t
+            suspected = mon.since_t is not None and mon.suspected(t_s)  # (no suspicion: nothing to end)
         if status is not FrameStatus.USED:
             return DecodedFrame(status, t_s, plan.name, injection=suspected)
         out = DecodedFrame(FrameStatus.USED, t_s, plan.name, counter_gap=gap, injection=suspected)
@@ -260,7 +264,7 @@ class FrameDecoder:
         mod = plan.counter_modulus
         jump = min(self.max_counter_jump, mod - 2)
         mon = plan.injection
-        if mon is not None and mon.suspected(t_s) and mon.primary is not None:
+        if mon is not None and mon.since_t is not None and mon.suspected(t_s) and mon.primary is not None:
             d_p = (counter - mon.primary) % mod
             d_s = (counter - mon.secondary) % mod if mon.secondary is not None else 0
             if 1 <= d_s <= 2 and not d_p == 1:
