@@ -100,7 +100,8 @@ def _valid_z(z: np.ndarray | None, z_var: np.ndarray | None) -> tuple[np.ndarray
     zz, vv = np.asarray(z, dtype=np.float64), np.asarray(z_var, dtype=np.float64)
     if zz.shape != (MEAS_DIM,) or vv.shape != (MEAS_DIM,):
         return None
-    if not (np.isfinite(zz).all() and np.isfinite(vv).all() and (vv > 0.0).all()):
+    # (on Python floats: five values, once per step; NumPy's reductions cost more than the test)
+    if not (all(map(math.isfinite, zz.tolist())) and all(math.isfinite(v) and v > 0.0 for v in vv.tolist())):
         return None
     return zz, vv
 
@@ -628,6 +629,7 @@ class Ekf:
             self._F[_B_MODEL, _B_MODEL] = self.model_bias_decay
             # only H[v_x, v_x] = 1 + scale changes
             self._H_model = model_measurement(np.zeros(FULL_DIM), self.model_offset_share)[1]
+            self._H_stack: dict[tuple[bool, bool, bool], np.ndarray] = {}  # model z and cues stacked (_stacked)
         self.x: np.ndarray = np.zeros(self.dim)
         self.P: np.ndarray = np.eye(self.dim)
         self.n_resets = 0
@@ -691,6 +693,36 @@ class Ekf:
         hx[schema.Z.OMEGA_Z] = omega + self.model_offset_share * b_yaw + b_model
         return h, z - np.array(hx), z_var
 
+    def _stacked(self, x: np.ndarray, zv: tuple[np.ndarray, np.ndarray] | None, yaw_rate: float | None,
+                 wheel_speed: float | None, cue_var: list[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(H, innovation, variance)`` of the model's z (``zv``, when valid) stacked over the raw cues given:
+        the rows of :meth:`_model_rows` and :func:`cue_measurement`, in that order, with the same numbers, filled
+        into a kept H template per combination instead of built and joined."""
+        omega, v_x, v_y, a_x, a_y = x[_OMEGA:_AY + 1].tolist()
+        b_yaw, k_wheel, b_model = x[_B_YAW:].tolist()
+        key = (zv is not None, yaw_rate is not None, wheel_speed is not None)
+        h = self._H_stack.get(key)
+        if h is None:
+            rows = ([self._H_model] if key[0] else []) + [cue_measurement(x, yaw_rate, wheel_speed)[1]]
+            h = self._H_stack[key] = np.concatenate(rows)
+        innov: list[float] = []
+        var: list[float] = []
+        if zv is not None:
+            z, z_var = zv
+            h[schema.Z.V_X, _VX] = 1.0 + k_wheel
+            hx = [0.0] * MEAS_DIM
+            hx[schema.Z.V_X], hx[schema.Z.V_Y], hx[schema.Z.A_X], hx[schema.Z.A_Y] = \
+                (1.0 + k_wheel) * v_x, v_y, a_x, a_y
+            hx[schema.Z.OMEGA_Z] = omega + self.model_offset_share * b_yaw + b_model
+            innov = [zi - hi for zi, hi in zip(z.tolist(), hx, strict=True)]
+            var = z_var.tolist()
+        if yaw_rate is not None:
+            innov.append(yaw_rate - (omega + b_yaw))
+        if wheel_speed is not None:
+            h[len(innov), _VX] = 1.0 + k_wheel
+            innov.append(wheel_speed - (1.0 + k_wheel) * v_x)
+        return h, np.array(innov), np.array(var + cue_var)
+
     def _commit(self, x: np.ndarray, p: np.ndarray, status: StepStatus) -> StepStatus:
         if np.isfinite(x).all() and np.isfinite(p).all():
             self.x, self.P = x, p
@@ -746,12 +778,8 @@ class Ekf:
                 StepStatus.INPUT_INVALID if zv is None else StepStatus.SUCCESS
             if zv is None and not cues_ok:
                 return self._commit(x, p, status), False
-            rows = [] if zv is None else [self._model_rows(x, *zv)]
-            if cues_ok:
-                innovation, h = cue_measurement(x, yaw_rate, wheel_speed)
-                rows.append((h, innovation, np.array([v for _, v in cues])))
-            h, innovation, var = (np.concatenate(parts) for parts in zip(*rows, strict=True)) if len(rows) > 1 \
-                else rows[0]
+            h, innovation, var = self._stacked(x, zv, yaw_rate if cues_ok else None, wheel_speed if cues_ok else None,
+                                               [v for _, v in cues] if cues_ok else [])
             try:
                 x, p = update_linear(x, p, h, innovation, var, self._eye)
             except np.linalg.LinAlgError:
