@@ -129,9 +129,11 @@ def _outside_rows(lat, bounds: list[tuple[tuple[int, ...], tuple[int, ...]]], sa
     samples.outside_ms.extend(np.sum(per_stage, axis=0).tolist())
 
 
-def measure_steps(pipeline: Pipeline, frames: Iterable[can.Message], skip: int = 0, paced: bool = False) -> StepSamples:
+def measure_steps(pipeline: Pipeline, frames: Iterable[can.Message], skip: int = 0, paced: bool = False,
+                  every_row: bool = False) -> StepSamples:
     """Feed ``frames`` to ``pipeline`` as fast as it takes them; per-row samples (first ``skip`` rows with an
-    inference dropped). The pipeline may already have seen earlier frames of the same stream.
+    inference dropped). The pipeline may already have seen earlier frames of the same stream. Only the rows with
+    an inference count (the worst ones), unless ``every_row`` (those without count with model time 0).
 
     ``paced``: each frame at its own time after the first (as a bus delivers them), and every row counts, its model
     time 0: the figure for a pipeline whose model runs on a worker thread (``async_inference``), where no row waits
@@ -167,6 +169,9 @@ def measure_steps(pipeline: Pipeline, frames: Iterable[can.Message], skip: int =
                     marks.append((n_e2e + i, n_inf))
                     counted = True
                 n_inf += 1
+            elif every_row:
+                marks.append((n_e2e + i, -1))
+                counted = True
         end = tuple(lat.count(s) for s in OUTSIDE_STAGES)
         if counted:  # (two rows from one frame count as one step)
             bounds.append((start, end))

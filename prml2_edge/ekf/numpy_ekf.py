@@ -444,11 +444,18 @@ def update_linear(
     Same Cholesky gain and Joseph form as the selection update; ``innovation = y - h(x)`` (m,),
     ``meas_var`` (m,) the diagonal of ``R``; ``eye`` an (n, n) identity to use (the filter keeps one).
     """
-    hp = h @ P  # (m, n)
-    s = hp @ h.T + np.diag(meas_var)
     with np.errstate(invalid="ignore"):
-        chol = _cholesky_fast(s)
-        k_t = _solve(chol.T, _solve(chol, hp))  # (m, n) = S^-1 H P
+        return _update_linear(x, P, h, innovation, meas_var, eye)
+
+
+def _update_linear(x: np.ndarray, P: np.ndarray, h: np.ndarray, innovation: np.ndarray, meas_var: np.ndarray,
+                   eye: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`update_linear` for a caller that already ignores NumPy's invalid-value warnings (the hot path)."""
+    hp = h @ P  # (m, n)
+    s = hp @ h.T
+    s.flat[:: s.shape[0] + 1] += meas_var  # + diag(meas_var), without building it
+    chol = _cholesky_fast(s)
+    k_t = _solve(chol.T, _solve(chol, hp))  # (m, n) = S^-1 H P
     k = k_t.T
     x_new = x + k @ innovation
     a = (np.eye(P.shape[0]) if eye is None else eye) - k @ h
@@ -624,7 +631,8 @@ class Ekf:
         self.Q = q
         # per-step templates (the hot path fills the entries that change instead of building them)
         self._eye = np.eye(self.dim)
-        self._F = np.eye(self.dim)  # process_jacobian: the entries in _F_IDX change per step
+        self._F = np.eye(self.dim)  # process_jacobian: the entries _F_ROWS, _F_COLS change per step
+        self._F_flat = np.ravel_multi_index((_F_ROWS, _F_COLS), self._F.shape)  # those entries, flat
         if self.calibration:
             self._F[_B_MODEL, _B_MODEL] = self.model_bias_decay
             # only H[v_x, v_x] = 1 + scale changes
@@ -669,7 +677,7 @@ class Ekf:
             xs[_B_MODEL] *= self.model_bias_decay
         c_dt, s_dt, c_h, s_h = c * dt, s * dt, c * half_dt2, s * half_dt2
         f = self._F
-        f[_F_ROWS, _F_COLS] = (-rd_y, c_dt, -s_dt, c_h, -s_h, rd_x, s_dt, c_dt, s_h, c_h, dt, dt, dt)
+        f.flat[self._F_flat] = (-rd_y, c_dt, -s_dt, c_h, -s_h, rd_x, s_dt, c_dt, s_h, c_h, dt, dt, dt)
         p_new = f @ self.P @ f.T + self.Q
         return np.array(xs), 0.5 * (p_new + p_new.T)
 
@@ -781,7 +789,7 @@ class Ekf:
             h, innovation, var = self._stacked(x, zv, yaw_rate if cues_ok else None, wheel_speed if cues_ok else None,
                                                [v for _, v in cues] if cues_ok else [])
             try:
-                x, p = update_linear(x, p, h, innovation, var, self._eye)
+                x, p = _update_linear(x, p, h, innovation, var, self._eye)  # (inside errstate already)
             except np.linalg.LinAlgError:
                 x = np.full(self.dim, np.nan)
             committed = self._commit(x, p, status)
