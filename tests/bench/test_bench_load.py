@@ -30,3 +30,18 @@ def test_outside_rows_sums_each_rows_frames_and_stages():
     _outside_rows(lat, bounds, s)
     assert s.outside_stage_ms["decode"] == pytest.approx([0.003, 0.003])
     assert s.outside_ms == pytest.approx([0.003 + 0.001 + 0.04, 0.003 + 0.0005 + 0.08])
+
+
+def test_every_row_counts_the_rows_without_an_inference_too(tmp_path):
+    from prml2_edge.bench.latency import measure_steps
+    from prml2_edge.bench.replay_input import read_frames, simulate_log
+    from prml2_edge.runtime.pipeline import Pipeline
+
+    path, pose, _ = simulate_log(8.0, tmp_path / "drive.log", seed=3)
+    frames = read_frames(path)
+    inferred = measure_steps(Pipeline.build(initial_pose=pose), frames)
+    every = measure_steps(Pipeline.build(initial_pose=pose), frames, every_row=True)
+    assert every.rows == inferred.rows > 0
+    assert 0 < len(inferred.outside_ms) < len(every.outside_ms) <= every.rows
+    assert len(every.outside_ms) >= every.rows - 5  # (two rows completed by one frame count as one step)
+    assert every.model_ms.count(0.0) >= len(every.model_ms) - len(inferred.model_ms)
