@@ -686,26 +686,13 @@ class Ekf:
         """The model's z: :func:`update_model_calibrated` (with the kept H template) or :func:`update`."""
         if not self.calibration:
             return _update_selected(x, p, _Z_IDX, z - x[_Z_IDX], z_var)
-        return update_linear(x, p, *self._model_rows(x, z, z_var), self._eye)
-
-    def _model_rows(self, x: np.ndarray, z: np.ndarray,
-                    z_var: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(H (5, 11), innovation (5,), variance (5,))`` of the model's z in the calibrated layout
-        (:func:`model_measurement`, filled into the kept H template)."""
-        omega, v_x, v_y, a_x, a_y = x[_OMEGA:_AY + 1].tolist()
-        b_yaw, k_wheel, b_model = x[_B_YAW:].tolist()
-        h = self._H_model
-        h[schema.Z.V_X, _VX] = 1.0 + k_wheel
-        hx = [0.0] * MEAS_DIM
-        hx[schema.Z.V_X], hx[schema.Z.V_Y], hx[schema.Z.A_X], hx[schema.Z.A_Y] = (1.0 + k_wheel) * v_x, v_y, a_x, a_y
-        hx[schema.Z.OMEGA_Z] = omega + self.model_offset_share * b_yaw + b_model
-        return h, z - np.array(hx), z_var
+        return update_linear(x, p, *self._stacked(x, (z, z_var), None, None, []), self._eye)
 
     def _stacked(self, x: np.ndarray, zv: tuple[np.ndarray, np.ndarray] | None, yaw_rate: float | None,
                  wheel_speed: float | None, cue_var: list[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(H, innovation, variance)`` of the model's z (``zv``, when valid) stacked over the raw cues given:
-        the rows of :meth:`_model_rows` and :func:`cue_measurement`, in that order, with the same numbers, filled
-        into a kept H template per combination instead of built and joined."""
+        """``(H, innovation, variance)`` of the model's z (``zv``, when valid; :func:`model_measurement`) stacked
+        over the raw cues given (:func:`cue_measurement`), in that order, with the same numbers, filled into a kept
+        H template per combination instead of built and joined."""
         omega, v_x, v_y, a_x, a_y = x[_OMEGA:_AY + 1].tolist()
         b_yaw, k_wheel, b_model = x[_B_YAW:].tolist()
         key = (zv is not None, yaw_rate is not None, wheel_speed is not None)
