@@ -604,6 +604,10 @@ class Ekf:
         raw cues (:meth:`update_cues`) and standstill updates (:meth:`update_standstill`).
     """
 
+    # Diagnostics (benchmarks/innovation_check.py): a list here gets, per step_with_cues update, ``((model z, yaw
+    # cue, wheel cue given), innovation (m,), diag(H P H^T + R) (m,))``; None (the default): nothing is kept.
+    innovation_log: list | None = None
+
     def __init__(
         self,
         x0: np.ndarray | None = None,
@@ -775,6 +779,10 @@ class Ekf:
                 return self._commit(x, p, status), False
             h, innovation, var = self._stacked(x, zv, yaw_rate if cues_ok else None, wheel_speed if cues_ok else None,
                                                [v for _, v in cues] if cues_ok else [])
+            if self.innovation_log is not None:
+                self.innovation_log.append(((zv is not None, cues_ok and yaw_rate is not None,
+                                             cues_ok and wheel_speed is not None), innovation.copy(),
+                                            np.einsum("ij,jk,ik->i", h, p, h) + var))
             try:
                 x, p = _update_linear(x, p, h, innovation, var, self._eye)  # (inside errstate already)
             except np.linalg.LinAlgError:

@@ -366,3 +366,23 @@ def test_one_update_of_model_and_cues_is_the_two_updates_in_turn() -> None:
     assert joint.step_with_cues(np.zeros(5), -np.ones(5), 0.0, 1e-4) == (StepStatus.INPUT_INVALID, True)
     with pytest.raises(RuntimeError, match="calibration"):
         ne.Ekf().step_with_cues(np.zeros(5), np.ones(5), 0.0, 1e-4)
+
+
+def test_the_innovation_log_keeps_each_cues_innovation_and_its_predicted_variance() -> None:
+    """Ekf.innovation_log (benchmarks/innovation_check.py): per update, which rows were there, the innovations and
+    diag(H P H^T + R); on a consistent simulated drive the normalised innovations have unit variance."""
+    rng = np.random.default_rng(5)
+    ekf = ne.Ekf(calibration=True)
+    ekf.x[EkfState.VEL.start] = 10.0
+    ekf.innovation_log = []
+    for k in range(3000):
+        yaw = 0.01 + rng.normal(scale=0.003) if k % 2 else None
+        ekf.step_with_cues(np.array([10.0, 0.0, 0.0, 0.0, 0.0]) + rng.normal(scale=0.05, size=5), np.full(5, 0.05**2),
+                           yaw, 0.003**2, 10.0 + rng.normal(scale=0.02), 0.02**2)
+    keys = {key for key, _, _ in ekf.innovation_log}
+    assert keys == {(True, True, True), (True, False, True)}
+    for (model, yaw, wheel), nu, s in ekf.innovation_log[:2]:
+        assert nu.shape == s.shape == (5 * model + yaw + wheel,) and (s > 0).all()
+    e = np.array([nu[:5] / np.sqrt(s[:5]) for _, nu, s in ekf.innovation_log[500:]])
+    np.testing.assert_allclose((e**2).mean(axis=0)[[0, 1]], 1.0, atol=0.15)  # v_x, v_y: nothing else measures v_y
+    assert ne.Ekf(calibration=True).innovation_log is None  # off unless asked
