@@ -11,9 +11,7 @@ def _dot(a: list[float], b: list[float]) -> float:
     unrolled for the 2 and 3 parameters of :class:`Rls` (the generator expression was most of its cost)."""
     if len(a) == 2:
         return 0.0 + a[0] * b[0] + a[1] * b[1]
-    if len(a) == 3:
-        return 0.0 + a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-    return sum(x * y for x, y in zip(a, b, strict=True))
+    return 0.0 + a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
 class Rls:
@@ -22,37 +20,24 @@ class Rls:
     def __init__(self, theta: list[float], prior_std: list[float], forget: float) -> None:
         self.theta = list(theta)
         n = len(theta)
+        if n not in (2, 3):
+            raise ValueError(f"Rls takes 2 or 3 parameters, got {n}")
         self.P = [[(prior_std[i] ** 2 if i == j else 0.0) for j in range(n)] for i in range(n)]
         self.max_var = [sd * sd for sd in prior_std]
         self.forget = forget
         self.n = 0
 
     def update(self, phi: list[float], y: float, noise_var: float) -> None:
-        n = len(phi)
-        if n == 2:
+        """One sample: regressors ``phi``, measurement ``y``, its noise variance (Kalman-form RLS, the covariance
+        divided by the forgetting factor, then held at the prior's size: :meth:`_no_wind_up`)."""
+        if len(phi) == 2:
             self._update2(phi, y, noise_var)
-            return
-        P = self.P
-        Pphi = [_dot(row, phi) for row in P]
-        s = noise_var * self.forget + _dot(phi, Pphi)
-        if not s > 0.0:
-            return
-        theta = self.theta
-        err = y - _dot(theta, phi)
-        k = [p / s for p in Pphi]
-        for i in range(n):
-            theta[i] += k[i] * err
-        lam = self.forget
-        for i in range(n):
-            row, k_i = P[i], k[i]
-            for j in range(n):
-                row[j] = (row[j] - k_i * Pphi[j]) / lam
-        self._no_wind_up()
-        self.n += 1
+        else:
+            self._update3(phi, y, noise_var)
 
     def _update2(self, phi: list[float], y: float, noise_var: float) -> None:
-        """:meth:`update` for two parameters (the wheel pairs, the brake gain: most updates), unrolled: the same
-        operations in the same order (``_dot``'s sums from 0, left to right), without the loops."""
+        """:meth:`update` for two parameters (the wheel pairs, the brake gain: most updates), unrolled: each product
+        summed from 0, left to right (as ``sum()`` and :func:`_dot`), without loops."""
         P, theta, lam = self.P, self.theta, self.forget
         (p00, p01), (p10, p11) = P
         phi0, phi1 = phi
@@ -70,6 +55,28 @@ class Rls:
         self._no_wind_up()
         self.n += 1
 
+    def _update3(self, phi: list[float], y: float, noise_var: float) -> None:
+        """:meth:`update` for three parameters (the steering model), unrolled like :meth:`_update2`."""
+        P, theta, lam = self.P, self.theta, self.forget
+        (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = P
+        phi0, phi1, phi2 = phi
+        pphi0 = 0.0 + p00 * phi0 + p01 * phi1 + p02 * phi2
+        pphi1 = 0.0 + p10 * phi0 + p11 * phi1 + p12 * phi2
+        pphi2 = 0.0 + p20 * phi0 + p21 * phi1 + p22 * phi2
+        s = noise_var * lam + (0.0 + phi0 * pphi0 + phi1 * pphi1 + phi2 * pphi2)
+        if not s > 0.0:
+            return
+        err = y - (0.0 + theta[0] * phi0 + theta[1] * phi1 + theta[2] * phi2)
+        k0, k1, k2 = pphi0 / s, pphi1 / s, pphi2 / s
+        theta[0] += k0 * err
+        theta[1] += k1 * err
+        theta[2] += k2 * err
+        P[0][0], P[0][1], P[0][2] = (p00 - k0 * pphi0) / lam, (p01 - k0 * pphi1) / lam, (p02 - k0 * pphi2) / lam
+        P[1][0], P[1][1], P[1][2] = (p10 - k1 * pphi0) / lam, (p11 - k1 * pphi1) / lam, (p12 - k1 * pphi2) / lam
+        P[2][0], P[2][1], P[2][2] = (p20 - k2 * pphi0) / lam, (p21 - k2 * pphi1) / lam, (p22 - k2 * pphi2) / lam
+        self._no_wind_up()
+        self.n += 1
+
     def _no_wind_up(self) -> None:
         """A parameter the data do not excite (the track on a straight) keeps at most its prior uncertainty, so
         one odd sample cannot move it far."""
@@ -83,7 +90,7 @@ class Rls:
                     P[j][i] *= f
 
     def predict(self, phi: list[float]) -> float:
-        return sum(t * p for t, p in zip(self.theta, phi, strict=True))
+        return _dot(self.theta, phi)  # (sum()'s order, unrolled)
 
 
 class Ema:
