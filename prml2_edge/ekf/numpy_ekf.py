@@ -723,7 +723,7 @@ class Ekf:
         return h, np.array(innov), np.array(var + cue_var)
 
     def _commit(self, x: np.ndarray, p: np.ndarray, status: StepStatus) -> StepStatus:
-        if np.isfinite(x).all() and np.isfinite(p).all():
+        if all(map(math.isfinite, x.tolist())) and np.isfinite(p).all():  # (x: 11 values, cheaper as floats)
             self.x, self.P = x, p
             self._last_good = (x.copy(), p.copy())
             return status

@@ -128,6 +128,7 @@ class Assembler:
         self.dt_s = float(dt_s)
         self.max_gap_s = float(max_gap_s)
         self.eps_s = float(eps_s)
+        self._stale_limit_s = self.stale_after_s + self.eps_s  # a held value older than this is stale (_emit)
         self.bus_silent_s = float(bus_silent_s)
         self.max_backstep_s = float(max_backstep_s)
         self.stuck_checks = tuple(stuck_checks)
@@ -184,7 +185,7 @@ class Assembler:
         if self.decel_substitutes:
             self._update_decel()
         age = t_k - self.last_t_s
-        valid = self.quality_ok & (age <= self.stale_after_s + self.eps_s)
+        valid = self.quality_ok & (age <= self._stale_limit_s)
         if self.substituted.any():
             age[self.substituted] = 0.0
             valid |= self.substituted
