@@ -30,8 +30,9 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.bench.machine import machine_info
-from prml2_edge.data.datasets import load_dataset
+from prml2_edge.data.datasets import EVAL_SPLITS, load_dataset
 from prml2_edge.ekf.numpy_ekf import Ekf
+from prml2_edge.errors import DataError
 from prml2_edge.evaluation.protocol import ModelSpec, run_window, split_tasks
 from prml2_edge.progress import Progress
 from prml2_edge.runtime.inference import default_model_path
@@ -101,11 +102,15 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", default="data/bench2")
     p.add_argument("--model", default=str(default_model_path()))
-    p.add_argument("--split", default="val")
+    p.add_argument("--split", default="val", choices=EVAL_SPLITS)
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--out", default=str(OUT))
     args = p.parse_args(argv)
-    tasks = split_tasks(load_dataset(args.data), args.split)
+    try:
+        tasks = split_tasks(load_dataset(args.data), args.split)
+    except DataError as e:
+        print(f"innovation_check: {e}", file=sys.stderr)
+        return 1
     if not tasks:
         print(f"no windows in split {args.split!r} of {args.data}", file=sys.stderr)
         return 1

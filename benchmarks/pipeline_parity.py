@@ -106,6 +106,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True, help="write this run's outputs here (pickle)")
     ap.add_argument("--against", default=None, help="an earlier --out to compare with")
     args = ap.parse_args(argv)
+    if args.against is not None and not Path(args.against).is_file():
+        print(f"pipeline_parity: {args.against}: no such dump; make it first with --out (at the base commit)",
+              file=sys.stderr)
+        return 1
     warnings.simplefilter("ignore")
     out = dump(OnnxModel(default_model_path(), threads=1))
     Path(args.out).write_bytes(pickle.dumps(out))
