@@ -18,6 +18,12 @@ so each row differs from the next by one choice only, on the same windows. Varia
 * ``+ coarse gyro: model held to the reading's interval``: there the model's omega_z is also held within half a
   resolution step and 3 sigma of the reading less the offset estimate (the runtime's default).
 
+Bounds, not runtime options: the same windows with the CAN yaw rate divided by ``1 + g``, ``g`` the gyro gain error
+the simulator drew for the drive (``sensor_errors.yaw_scale_error``), as a gain calibration that knew it would
+correct the gyro cue (the model still reads the raw signal: its recorded outputs are replayed unchanged). Rows: OSD
+and the default with ``g`` known exactly, and the default with ``g`` known to 0.3 % (a per-drive draw, seeded by the
+drive's name). They say what a gyro gain calibration is worth; nothing in the runtime estimates ``g`` today.
+
 Every calibrated variant starts from the standstill offset the OSD baseline subtracts (a car's calibration file).
 The OSD baseline is tuned on the validation split (``tune_osd``) and is the reference of every ratio and of the
 paired intervals (``paired_comparison``: mean of variant - OSD RMSE per window, bootstrap 95 %). Protocols: the
@@ -37,6 +43,7 @@ import json
 import os
 import sys
 import time
+import zlib
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
@@ -57,6 +64,7 @@ from prml2_edge.evaluation.protocol import (
     tune_osd,
 )
 from prml2_edge.progress import Progress
+from prml2_edge.schema import SIGNAL_BY_NAME
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "results" / "filter_ablation.json"
@@ -67,6 +75,10 @@ DEFAULT = "+ coarse gyro: model held to the reading's interval (the runtime's de
 
 NO_COARSE = ("coarse_yaw_resolution_radps", float("inf"))  # the coarse-gyro inflation off
 NO_HOLD = ("coarse_model_clamp_sigma", None)  # the coarse-gyro hold off
+GAIN_RESIDUAL = 0.003  # the gain known to 0.3 % (1 sigma)
+BOUNDS = {"bound: OSD, the drive's gyro gain known": (OSD, 0.0),
+          "bound: the default, the drive's gyro gain known": (DEFAULT, 0.0),
+          "bound: the default, the gyro gain known to 0.3 %": (DEFAULT, GAIN_RESIDUAL)}
 PREVIOUS = (("model_offset_share", 1.0), ("cal_model_bias_tau_s", 5.0),
             ("cal_model_bias_std_radps", 0.2 * DEG), ("model_omega_var_inflation", None), NO_COARSE)
 
@@ -89,21 +101,46 @@ def variants(model: str) -> dict[str, ModelSpec]:
             DEFAULT: cal}
 
 
+def gain_known(task, gain: float, residual: float):
+    """``task`` with its CAN yaw rate divided by ``1 +`` the gain error a calibration would know: the drawn ``gain``
+    plus a normal error of std ``residual`` drawn per drive (seeded by its name, so every window of a drive and every
+    run agree)."""
+    est = gain
+    if residual:
+        est += float(np.random.default_rng(zlib.crc32(task.drive.encode())).normal(0.0, residual))
+    onboard = task.onboard.copy()
+    onboard[:, SIGNAL_BY_NAME["yaw_rate_radps"].index] /= 1.0 + est
+    return replace(task, onboard=onboard)
+
+
 def _one_task(args):
-    """Worker: the model once on ``task``, then every variant on its recorded outputs."""
-    specs, task = args
+    """Worker: the model once on ``task``, then every variant on its recorded outputs, then the bounds (``bounds``:
+    name -> (spec, gain, residual); an OSD spec runs itself)."""
+    specs, task, bounds = args
     (first_name, first), *rest = specs.items()
     rec = RecordingModel(build_model(first, task.bias))
     out = {first_name: run_window(first, task, model=rec)}
     for name, spec in rest:
         out[name] = run_window(spec, task, model=ReplayModel(rec.records, rec.metadata))
+    for name, (spec, gain, residual) in bounds.items():
+        known = gain_known(task, gain, residual)
+        out[name] = run_window(spec, known, model=None if spec.kind == "osd" else
+                               ReplayModel(rec.records, rec.metadata))
     return out
 
 
-def run_split(tasks, specs: dict[str, ModelSpec], jobs: int, label: str) -> dict[str, list]:
+def bound_specs(specs: dict[str, ModelSpec], osd_spec: ModelSpec, gains: dict[str, float], task) -> dict:
+    """The bound rows for ``task``: name -> (spec, the drive's drawn gain error, residual)."""
+    if task.drive not in gains:
+        return {}
+    return {name: (osd_spec if ref == OSD else specs[ref], gains[task.drive], residual)
+            for name, (ref, residual) in BOUNDS.items()}
+
+
+def run_split(tasks, specs: dict[str, ModelSpec], jobs: int, label: str, bounds=lambda task: {}) -> dict[str, list]:
     results: dict[str, list] = {name: [] for name in specs}
     bar = Progress(len(tasks), desc=f"ablation {label}", unit="win")
-    pairs = [(specs, t) for t in tasks]
+    pairs = [(specs, t, bounds(t)) for t in tasks]
     if jobs <= 1:
         outs = map(_one_task, pairs)
     else:
@@ -112,7 +149,7 @@ def run_split(tasks, specs: dict[str, ModelSpec], jobs: int, label: str) -> dict
         outs = pool.map(_one_task, pairs, chunksize=1)
     for out in outs:
         for name, res in out.items():
-            results[name].append(res)
+            results.setdefault(name, []).append(res)
         bar.update()
     bar.close()
     return results
@@ -151,7 +188,7 @@ def per_car(res: list, osd: list) -> dict:
 def check_replay_is_exact(specs: dict[str, ModelSpec], task) -> float:
     """Largest position difference [m] between the default variant on replayed outputs and on the model itself."""
     name = DEFAULT
-    replayed = _one_task(({name: specs[name]}, task))[name]
+    replayed = _one_task(({name: specs[name]}, task, {}))[name]
     direct = run_window(specs[name], task)
     return float(np.max(np.abs(replayed.pose - direct.pose)))
 
@@ -161,6 +198,8 @@ def measure(args: argparse.Namespace) -> dict:
     specs = variants(args.model)
     val = split_tasks(dataset, "val", max_windows=args.max_windows)
     osd_spec = tune_osd(ModelSpec(OSD, "osd"), val, jobs=args.jobs)
+    gains = {d.name: float(d.meta["sensor_errors"]["yaw_scale_error"]) for d in dataset.drives
+             if "yaw_scale_error" in d.meta.get("sensor_errors", {})}
     doc = {"data": str(args.data), "model": str(args.model), "osd_q_scale": osd_spec.q_scale, "splits": {}}
     for split in args.splits:
         for protocol, pre in (("paper", 0.0), ("deployment", DEPLOYMENT_PREROLL_S)):
@@ -170,7 +209,11 @@ def measure(args: argparse.Namespace) -> dict:
             if "replay_exact_max_m" not in doc:
                 doc["replay_exact_max_m"] = check_replay_is_exact(specs, tasks[0])
             osd = run_all([osd_spec], tasks, jobs=args.jobs)[OSD]
-            doc["splits"][f"{split} / {protocol}"] = summarise(run_split(tasks, specs, args.jobs, split), osd)
+            res = run_split(tasks, specs, args.jobs, split,
+                            bounds=lambda t: bound_specs(specs, osd_spec, gains, t))
+            if any(len(r) != len(tasks) for r in res.values()):  # a drive without its drawn gain: no bound rows
+                res = {n: r for n, r in res.items() if len(r) == len(tasks)}
+            doc["splits"][f"{split} / {protocol}"] = summarise(res, osd)
     return doc
 
 
@@ -198,16 +241,19 @@ def car_table(doc: dict) -> list[str]:
     names = list(next(iter(doc["splits"].values())))
     prev = next(n for n in names if n.startswith("previous default"))
     default = next(n for n in names if n.endswith("(the runtime's default)"))
+    known = [n for n in names if n == "bound: the default, the drive's gyro gain known"]  # absent in older runs
     out = ["", "Per car, 60 s RMSE × OSD on the same car's windows (paired difference to OSD [m], 95 %):", "",
-           "| split / protocol | car | OSD m | the default | previous default |", "|---|---|---:|---|---|"]
+           "| split / protocol | car | OSD m | the default | previous default |"
+           + " the default, gain known |" * len(known),
+           "|---|---|---:|---|---|" + "---|" * len(known)]
     for key, rows in doc["splits"].items():
         for car, ref in rows[OSD]["per_car"].items():
             cells = []
-            for name in (default, prev):
+            for name in (default, prev, *known):
                 c = rows[name]["per_car"][car]
                 lo, hi = c["paired_vs_osd"]["rmse_diff_ci95_m"]
                 cells.append(f"{c['ratio_to_osd']:.2f}× [{lo:+.1f}, {hi:+.1f}]")
-            out.append(f"| {key} | {car} | {ref['rmse_mean_m']:.1f} | {cells[0]} | {cells[1]} |")
+            out.append(f"| {key} | {car} | {ref['rmse_mean_m']:.1f} | " + " | ".join(cells) + " |")
     return out
 
 
