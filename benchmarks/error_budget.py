@@ -15,7 +15,10 @@ error names a job the model has no reason to do. Then, per drive, **what could t
 the gain error left by a least-squares fit of the standstill-calibrated CAN yaw rate over the whole drive (moving
 above 5 m/s and turning above 3 °/s) against ``a_y / v`` and against the rear wheels' difference over the car's
 geometric track (less a fitted ``radius difference x v``), next to the drawn gain itself (what assuming 0 leaves).
-Fitted over the whole drive, after the fact: an upper bound for an online estimate.
+Fitted over the whole drive, after the fact: an upper bound for an online estimate. And with GNSS: the same
+calibrated yaw rate integrated over 10 s baselines against the GNSS heading's change over each (10 Hz fixes, 2 deg
+white noise, only while moving, as ``simulated_fixes``; a constant offset left fitted beside the gain), over the
+drive's first 2 and 5 minutes: how much driving a gain calibration would need.
 
 Simulated drives only (their truth); a real car's budget differs (its lateral accelerometer reads roll, its gyro
 gain is a property of the unit, not of the drive).
@@ -31,6 +34,7 @@ import argparse
 import json
 import sys
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +44,7 @@ from prml2_edge.bench.machine import machine_info
 from prml2_edge.data.datasets import load_dataset
 from prml2_edge.data.simulate.fleet import CARS
 from prml2_edge.evaluation.osd import drive_bias
-from prml2_edge.evaluation.protocol import split_tasks
+from prml2_edge.evaluation.protocol import GNSS_HEADING_MIN_SPEED_MPS, GNSS_HEADING_STD_DEG, GNSS_RATE_HZ, split_tasks
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "results" / "error_budget.json"
@@ -49,6 +53,8 @@ _YAW = schema.SIGNAL_BY_NAME["yaw_rate_radps"].index
 _AY = schema.SIGNAL_BY_NAME["lat_accel_mps2"].index
 _RL, _RR = _WHEELS[2], _WHEELS[3]
 _SLOW_S = 10.0
+GNSS_BASELINE_S = 10.0
+GNSS_MINUTES = (2.0, 5.0)
 CASES = ("OSD (reference)", "true ω_z", "true v_x", "true v_y", "true ω_z and v", "no gyro offset",
          "no gyro scale", "neither", "gyro slow error removed")
 
@@ -116,14 +122,38 @@ def gain_evidence(drive) -> dict[str, float] | None:
     # rear pair: rr - rl = track * omega + eps * v, omega = g / (1 + k)  ->  fit (track / (1 + k), eps)
     (c, _), *_ = np.linalg.lstsq(np.stack([g[m], v[m]], axis=1), ob[m, _RR] - ob[m, _RL], rcond=None)
     k_rear = car.params.track_m / float(c) - 1.0
-    return {"drawn": 100.0 * drawn, "a_y / v": 100.0 * (k_ay - drawn), "rear pair": 100.0 * (k_rear - drawn)}
+    gnss = {f"GNSS {m:g} min": 100.0 * (gnss_gain_fit(drive, g, m) - drawn) for m in GNSS_MINUTES}
+    return {"drawn": 100.0 * drawn, "a_y / v": 100.0 * (k_ay - drawn), "rear pair": 100.0 * (k_rear - drawn), **gnss}
+
+
+def gnss_gain_fit(drive, gyro: np.ndarray, minutes: float) -> float:
+    """The gyro gain error [1] a fit of ``gyro`` (the calibrated yaw rate) against GNSS heading changes over
+    10 s baselines in the drive's first ``minutes`` finds; noise seeded by the drive's name."""
+    n = min(len(gyro), int(minutes * 60.0 * schema.SAMPLE_RATE_HZ))
+    every = int(round(schema.SAMPLE_RATE_HZ / GNSS_RATE_HZ))
+    rng = np.random.default_rng(zlib.crc32(drive.name.encode()))
+    fix = np.arange(0, n, every)
+    noise = np.radians(rng.normal(0.0, GNSS_HEADING_STD_DEG, len(fix)))
+    heading = np.interp(np.arange(n), fix, np.unwrap(drive.pose_gt[fix, 2] + noise))  # heading changes < pi per fix
+    phi = np.concatenate([[0.0], np.cumsum(gyro[: n - 1]) * schema.DT_S])
+    step = int(GNSS_BASELINE_S * schema.SAMPLE_RATE_HZ)
+    a = np.arange(0, n - step, step)
+    speed = np.hypot(drive.z_gt[:n, 0], drive.z_gt[:n, 1])
+    moving = (speed[a] >= GNSS_HEADING_MIN_SPEED_MPS) & (speed[a + step] >= GNSS_HEADING_MIN_SPEED_MPS)
+    cols = np.stack([phi[a + step] - phi[a], np.full(len(a), GNSS_BASELINE_S)], axis=1)[moving]
+    if len(cols) < 3:
+        return float("nan")
+    # heading change = gyro change / (1 + k) - offset x time / (1 + k); the noisy GNSS side is the regressand
+    (c, _), *_ = np.linalg.lstsq(cols, heading[a + step][moving] - heading[a][moving], rcond=None)
+    return 1.0 / float(c) - 1.0 if c > 0 else float("nan")
 
 
 def gain_rows(dataset, split: str) -> dict[str, float]:
     """Rms over the split's drives of the drawn gain and of each fit's error [%]."""
     names = {d.name for d, _, _ in dataset.segments(split)}
     ev = [e for d in dataset.drives if d.name in names and (e := gain_evidence(d)) is not None]
-    return {"n_drives": len(ev), **{k: float(np.sqrt(np.mean([e[k] ** 2 for e in ev]))) for k in (ev[0] if ev else {})}}
+    return {"n_drives": len(ev), **{k: float(np.sqrt(np.nanmean([e[k] ** 2 for e in ev])))
+                                    for k in (ev[0] if ev else {})}}
 
 
 def markdown(doc: dict) -> list[str]:
@@ -142,12 +172,15 @@ def markdown(doc: dict) -> list[str]:
             out.append(f"| {s} | {car} | {d[CASES[0]]:.2f} | {d['no gyro scale']:.2f} | "
                        f"{doc['splits'][s]['yaw_scale_error_rms_pct'][car]:.2f} |")
     out += ["", "What could tell the gyro's gain: rms over the drives [%] of the drawn gain error (assuming 0) and of "
-            "what a whole-drive fit leaves:", "", "| split | drives | drawn | a_y / v fit | rear pair fit |",
-            "|---|---:|---:|---:|---:|"]
+            "what a whole-drive fit leaves; with GNSS heading, what a fit over the drive's first minutes leaves:", "",
+            "| split | drives | drawn | a_y / v fit | rear pair fit |"
+            + "".join(f" GNSS, first {m:g} min |" for m in GNSS_MINUTES), "|---|---:|---:|---:|---:|" + "---:|" * 2]
     for s in splits:
         e = doc["splits"][s]["gain_evidence"]
         if e["n_drives"]:
-            out.append(f"| {s} | {e['n_drives']} | {e['drawn']:.2f} | {e['a_y / v']:.2f} | {e['rear pair']:.2f} |")
+            gnss = "".join(f" {e[f'GNSS {m:g} min']:.2f} |" if f"GNSS {m:g} min" in e else " – |" for m in GNSS_MINUTES)
+            out.append(f"| {s} | {e['n_drives']} | {e['drawn']:.2f} | {e['a_y / v']:.2f} | {e['rear pair']:.2f} |"
+                       + gnss)
     return out
 
 
