@@ -198,7 +198,7 @@ class FrameDecoder:
                 return DecodedFrame(FrameStatus.REJECTED_DLC, t_s, plan.name)
         try:
             payload = data if full else data + bytes(plan.length - n_data)
-            decoded = plan.message.decode(payload, decode_choices=False)
+            decoded = plan.message.decode_simple(payload, decode_choices=False)  # no container dispatch
         except Exception:  # cantools raises several types on malformed data
             return DecodedFrame(FrameStatus.REJECTED_DECODE, t_s, plan.name)
         if plan.checksum is not None:
