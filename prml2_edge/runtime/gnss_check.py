@@ -17,8 +17,9 @@ odometry puts it from the start of the baseline (what it fused since then was th
 The tolerance is what the check does not know, added up (issue 28: a real car's uncalibrated gyro
 must not make genuine fixes look like a spoof):
 
-* the noise of the two end fixes, ``gnss_sigmas * sqrt(2) * sigma_fix`` (a 2-D distance: 4.3 such sigmas are
-  passed once in 10^4 comparisons), where ``sigma_fix`` is the
+* the noise of the baseline's two ends, each the mean of its fixes over ``average_s`` (1 s: 10 fixes),
+  ``gnss_sigmas * sigma_fix * sqrt(1 / n_old + 1 / n_new)`` (a 2-D distance: 4.3 such sigmas are passed once
+  in 10^4 comparisons), where ``sigma_fix`` is the
   larger of the configured GNSS noise and the one the fix stream shows (:class:`FixNoise`);
 * the odometry's own floor ``tol_m``, and ``tol_per_m`` (wheel scale) per metre driven;
 * the filter's heading uncertainty at the baseline's start, ``heading_sigmas * psi_std * distance``;
@@ -54,10 +55,11 @@ class GnssCheckConfig:
     baseline_s: float = 8.0  # compare displacements over this long
     min_baseline_s: float = 3.0  # ... at least this long (after a restart)
     tol_m: float = 0.6  # the odometry's own error over a baseline ...
-    # ... plus this many sigmas of the difference of two fixes: the distance of two 2-D fixes is Rayleigh, so k
-    # sigmas are exceeded with probability exp(-k^2 / 2): 4.3 is 1e-4 per comparison (2 was 14 %: at 10 Hz
-    # with 1.5 m fixes genuine streams were refused within seconds; 0.5 m each: 3.0 m)
+    # ... plus this many sigmas of the difference of the two ends' mean fixes: a 2-D distance is Rayleigh, so k
+    # sigmas are exceeded with probability exp(-k^2 / 2): 4.3 is 1e-4 per comparison (2 single fixes were 14 %:
+    # at 10 Hz with 1.5 m fixes genuine streams were refused within seconds)
     gnss_sigmas: float = 4.3
+    average_s: float = 1.0  # each end of a baseline is the mean of its fixes over this long (10 at 10 Hz)
     tol_per_m: float = 0.01  # scale and gyro error per metre driven ...
     heading_sigmas: float = 1.0  # ... plus this many of the filter's heading sigmas at the baseline's start
     rate_sigmas: float = 1.0  # ... plus this many of its yaw-rate offset sigmas, integrated over the baseline
@@ -154,18 +156,33 @@ class GnssCheck:
         self._last = (x_m, y_m)
 
     def _disc(self, hist: collections.deque, fix_xy: tuple[float, float]) -> tuple[float, float, float]:
-        """``(discrepancy, tolerance, baseline)`` of ``fix_xy`` against the oldest entry of ``hist``."""
+        """``(discrepancy, tolerance, baseline)`` of ``fix_xy`` against the oldest entry of ``hist``: how far the
+        fixes' offset from the odometry (fix minus odometry position) moved between the baseline's two ends, each
+        end the mean over :attr:`~GnssCheckConfig.average_s` of its fixes (the newest end: ``fix_xy`` and the
+        entries before it), so that one noisy fix is not taken for a walk."""
         cfg = self.config
         old = hist[0]
-        g = (fix_xy[0] - old.fix[0], fix_xy[1] - old.fix[1])
+        ox = oy = 0.0
+        n_old = 0
+        for e in hist:
+            if e.t - old.t > cfg.average_s:
+                break
+            ox, oy, n_old = ox + e.fix[0] - e.odo[0], oy + e.fix[1] - e.odo[1], n_old + 1
+        nx, ny = fix_xy[0] - self.odo[0], fix_xy[1] - self.odo[1]
+        n_new = 1
+        for e in reversed(hist):
+            if self._now - e.t > cfg.average_s or n_new + n_old > len(hist):
+                break
+            nx, ny, n_new = nx + e.fix[0] - e.odo[0], ny + e.fix[1] - e.odo[1], n_new + 1
         o = (self.odo[0] - old.odo[0], self.odo[1] - old.odo[1])
         dist = math.hypot(*o)
         baseline = max(self._now - old.t, 0.0)
         # the odometry's heading is the filter's from the baseline's start, and it turns with the yaw-rate error
         # the filter has not calibrated: both widen the tolerance, as the fixes' own noise does
         per_m = cfg.tol_per_m + cfg.heading_sigmas * old.psi_std + cfg.rate_sigmas * old.rate_std * baseline / 2.0
-        tol = cfg.tol_m + cfg.gnss_sigmas * math.sqrt(2.0) * self.fix_std_m + per_m * dist
-        return math.hypot(g[0] - o[0], g[1] - o[1]), tol, old.t
+        noise = cfg.gnss_sigmas * self.fix_std_m * math.sqrt(1.0 / n_old + 1.0 / n_new)
+        tol = cfg.tol_m + noise + per_m * dist
+        return math.hypot(nx / n_new - ox / n_old, ny / n_new - oy / n_old), tol, old.t
 
     def check(self, t: float, fix_xy: tuple[float, float], pose_xy: tuple[float, float], in_gate: bool,
               psi_std: float = 0.0, rate_std: float = 0.0, converged: bool = True) -> tuple[bool, np.ndarray | None]:
