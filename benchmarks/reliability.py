@@ -357,6 +357,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-clean-hour", action="store_true")
     ap.add_argument("--no-spoof", action="store_true")
     ap.add_argument("--spoof-only", action="store_true", help="only the GNSS spoof runs")
+    ap.add_argument("--spoof-car", default="reference", choices=list(CARS),
+                    help="the car of the spoof runs (reference: a coarse 1.28 deg/s gyro, the check does not arm)")
     ap.add_argument("--out", default=str(HERE / "results" / "reliability.json"))
     ap.add_argument("--no-readme", action="store_true", help="do not rewrite the table in docs/reliability.md")
     args = ap.parse_args(argv)
@@ -379,7 +381,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{car}: clean end error {c['clean_end_error_m']:.1f} m, {c['wall_s']:.0f} s", file=sys.stderr)
         bar.close()
         if not args.no_spoof:
-            doc["spoof"] = run_spoof(args, model, Path(tmp))
+            doc["spoof"] = run_spoof(args, model, Path(tmp), car=args.spoof_car)
     if not args.no_clean_hour and not args.spoof_only:
         bar = Progress(len(cars), desc="reliability: clean hour", unit="car")
         for car in cars:
