@@ -119,6 +119,19 @@ class _Entry:
     rate_std: float = 0.0  # the filter's yaw-rate offset uncertainty then [rad/s]
 
 
+def _offset_sum(entries, t_anchor: float, within_s: float, at_most: int,
+                start: tuple[float, float] | None = None) -> tuple[float, float, int]:
+    """Sum of ``fix - odometry`` over ``start`` (one offset already in, counted) and the leading ``entries``
+    within ``within_s`` of ``t_anchor`` (at most ``at_most`` of them), and the count: one end of a baseline."""
+    sx, sy = start or (0.0, 0.0)
+    n = 0 if start is None else 1
+    for e in entries:
+        if n >= at_most or abs(e.t - t_anchor) > within_s:
+            break
+        sx, sy, n = sx + e.fix[0] - e.odo[0], sy + e.fix[1] - e.odo[1], n + 1
+    return sx, sy, n
+
+
 class GnssCheck:
     """Fix-stream displacement against wheel/gyro odometry (module docstring)."""
 
@@ -162,18 +175,9 @@ class GnssCheck:
         entries before it), so that one noisy fix is not taken for a walk."""
         cfg = self.config
         old = hist[0]
-        ox = oy = 0.0
-        n_old = 0
-        for e in hist:
-            if e.t - old.t > cfg.average_s:
-                break
-            ox, oy, n_old = ox + e.fix[0] - e.odo[0], oy + e.fix[1] - e.odo[1], n_old + 1
-        nx, ny = fix_xy[0] - self.odo[0], fix_xy[1] - self.odo[1]
-        n_new = 1
-        for e in reversed(hist):
-            if self._now - e.t > cfg.average_s or n_new + n_old > len(hist):
-                break
-            nx, ny, n_new = nx + e.fix[0] - e.odo[0], ny + e.fix[1] - e.odo[1], n_new + 1
+        ox, oy, n_old = _offset_sum(hist, old.t, cfg.average_s, len(hist))
+        nx, ny, n_new = _offset_sum(reversed(hist), self._now, cfg.average_s, len(hist) - n_old + 1,
+                                    start=(fix_xy[0] - self.odo[0], fix_xy[1] - self.odo[1]))
         o = (self.odo[0] - old.odo[0], self.odo[1] - old.odo[1])
         dist = math.hypot(*o)
         baseline = max(self._now - old.t, 0.0)

@@ -66,6 +66,29 @@ def test_the_tolerance_covers_the_yaw_rate_offset_the_filter_does_not_know_yet()
     assert _run_check(rate_std=0.0, converged=False).fixes_refused == 0  # not armed while learning the gyro
 
 
+def _noisy_stream(walk_mps: float) -> GnssCheck:
+    """60 s at 20 m/s straight with exact odometry and 1.5 m fixes at 10 Hz (a consumer receiver), the fixes
+    walking sideways at ``walk_mps`` from 30 s on; the filter knows its gyro (the check arms after 10 s)."""
+    rng = np.random.default_rng(11)
+    check = GnssCheck()
+    check.fix_std_m = 1.5
+    for k in range(600):
+        t = k * 0.1
+        check.step(check.odo[0] + 2.0, 0.0)
+        check.settle(check.odo[0], 0.0)
+        walk = walk_mps * max(t - 30.0, 0.0)
+        fix = (20.0 * t + rng.normal(0, 1.5), walk + rng.normal(0, 1.5))
+        check.check(t, fix, (check.odo[0], 0.0), True, psi_std=0.0, rate_std=0.0)
+    return check
+
+
+def test_a_noisy_receiver_is_not_a_spoofer_and_a_walk_still_is():
+    # one 1.5 m fix against another would pass 2 sqrt(2) sigma 14 % of the time; the baseline's ends are 1 s means
+    assert _noisy_stream(0.0).fixes_refused == 0
+    walked = _noisy_stream(50.0 / 60.0)  # reliability.py's spoof: 50 m over 60 s
+    assert walked.episodes >= 1 and walked.fixes_refused > 0
+
+
 @pytest.fixture(scope="module")
 def highway(tmp_path_factory):
     root = tmp_path_factory.mktemp("realcar")
