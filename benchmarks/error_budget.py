@@ -174,7 +174,8 @@ def markdown(doc: dict) -> list[str]:
     out += ["", "What could tell the gyro's gain: rms over the drives [%] of the drawn gain error (assuming 0) and of "
             "what a whole-drive fit leaves; with GNSS heading, what a fit over the drive's first minutes leaves:", "",
             "| split | drives | drawn | a_y / v fit | rear pair fit |"
-            + "".join(f" GNSS, first {m:g} min |" for m in GNSS_MINUTES), "|---|---:|---:|---:|---:|" + "---:|" * len(GNSS_MINUTES)]
+            + "".join(f" GNSS, first {m:g} min |" for m in GNSS_MINUTES),
+            "|---|---:|---:|---:|---:|" + "---:|" * len(GNSS_MINUTES)]
     for s in splits:
         e = doc["splits"][s]["gain_evidence"]
         if e["n_drives"]:
