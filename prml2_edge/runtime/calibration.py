@@ -9,6 +9,11 @@ stale or mismatched one gives one warning line and the prior, never a crash.
 
 The restored covariance is floored at :data:`RESTORE_STD_FLOOR`: offsets drift between drives
 (temperature, tyre pressure), so a restored estimate is a strong prior, not a certainty.
+
+An optional ``yaw_gain`` section holds the evidence on the CAN yaw rate's gain gathered over every drive so far
+(:mod:`prml2_edge.runtime.yaw_gain`: its information and information-weighted sum, which the next drive adds to).
+A file without it (written before the gain was learned) loads as before; a malformed section is refused with one
+warning line and the gain starts from its prior, the rest of the file still restored.
 """
 
 from __future__ import annotations
@@ -51,6 +56,7 @@ class CalibrationFile:
         self.last_error: str | None = None
         self.write_error: str | None = None  # the last failed save (a refused file on load is not one)
         self.restored = False
+        self.yaw_gain: tuple[float, float] | None = None  # the loaded gain evidence (info, info_c), if any
         self._last_save_t: float | None = None
 
     def load(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -86,7 +92,23 @@ class CalibrationFile:
         floor = np.diag(RESTORE_STD_FLOOR**2)
         cov = 0.5 * (cov + cov.T) + floor
         self.restored = True
+        self.yaw_gain = self._load_gain(data.get("yaw_gain"))
         return cal, cov
+
+    def _load_gain(self, section) -> tuple[float, float] | None:
+        """The ``yaw_gain`` section's ``(info, info_c)``; None when absent, or refused with one warning line."""
+        if section is None:
+            return None
+        try:
+            info, info_c = float(section["info"]), float(section["info_c"])
+            if not (math.isfinite(info) and math.isfinite(info_c) and info >= 0.0):
+                raise ValueError("non-finite or negative information")
+        except (ValueError, KeyError, TypeError) as exc:
+            self.last_error = f"yaw_gain section refused ({exc})"
+            log.warning("calibration file %s: yaw_gain section refused (%s): the gyro gain starts from its prior",
+                        self.path, exc)
+            return None
+        return info, info_c
 
     def check_writable(self) -> None:
         """Refuse at start-up, with one line, a place the calibration can never be saved to."""
@@ -112,13 +134,17 @@ class CalibrationFile:
             return False
         return t_s - self._last_save_t >= self.save_interval_s
 
-    def save(self, cal: np.ndarray, cov: np.ndarray, t_s: float | None = None) -> bool:
-        """Write atomically; False (and ``last_error``) when the folder is not writable, never raises."""
+    def save(self, cal: np.ndarray, cov: np.ndarray, t_s: float | None = None, yaw_gain: dict | None = None) -> bool:
+        """Write atomically; False (and ``last_error``) when the folder is not writable, never raises.
+        ``yaw_gain``: the gain estimator's :meth:`~prml2_edge.runtime.yaw_gain.YawGainEstimator.state`."""
         doc = {"format": FORMAT, "version": VERSION, "vehicle": self.identity, "saved_unix_s": time.time(),
                "drive_t_s": t_s, "state_names": list(CalState.NAMES),
                "cal": [float(v) for v in cal], "cov": [[float(v) for v in row] for row in cov],
                "readable": {"yaw_rate_offset_dps": math.degrees(float(cal[0])),
                             "wheel_scale_pct": 100.0 * float(cal[1])}}
+        if yaw_gain is not None:
+            doc["yaw_gain"] = {k: float(v) for k, v in yaw_gain.items()}
+            doc["readable"]["yaw_rate_gain_pct"] = 100.0 * float(yaw_gain["gain"])
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", dir=self.path.parent)

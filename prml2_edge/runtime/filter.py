@@ -12,7 +12,8 @@ Per 50 Hz step, in this order:
    heading follows the calibrated yaw rate and within them the model;
 4. standstill (every valid wheel speed 0 and the speedometer 0 for ``standstill_hold_s``): a
    zero-velocity / zero-rotation update, which with the yaw-rate cue reveals its offset without GNSS;
-5. GNSS fixes: position, and heading while moving, behind an innovation gate.
+5. GNSS fixes: position, and heading while moving, behind an innovation gate; a fused heading is also evidence
+   on the CAN yaw rate's gain (:mod:`prml2_edge.runtime.yaw_gain`), which divides the yaw-rate cue.
 
 The filter starts from a given pose, or from a GNSS fix, never before a wheel speed or the
 speedometer is valid (the velocity is initialised from the wheels, not from nothing). A GNSS start
@@ -35,6 +36,7 @@ from prml2_edge.runtime.estimator import Estimate
 from prml2_edge.runtime.gnss_check import FixNoise, GnssCheck, GnssCheckConfig
 from prml2_edge.runtime.initial_pose import InitialPose, initial_state
 from prml2_edge.runtime.rows import GnssFix
+from prml2_edge.runtime.yaw_gain import YawGainEstimator
 from prml2_edge.schema import CalState, EkfState
 
 _SIG = schema.SIGNAL_BY_NAME
@@ -86,6 +88,11 @@ class PoseFilter:
         self.calibration0: tuple[np.ndarray, np.ndarray] | None = None
         self.omega_var_inflation = 1.0  # on the model's omega_z variance when the raw cues are fused (localizer.py)
         self.omega_var_inflation_coarse = 1.0  # the same next to a coarse CAN yaw rate, once measured coarse
+        # the CAN yaw rate's gain: evidence over drives (the calibration file), so not reset with the EKF
+        self.yaw_gain = YawGainEstimator(math.radians(config.gnss_heading_std_deg))
+        self._gain_on = self.calibrated and bool(config.yaw_gain_calibration)
+        self._row_yaw: float | None = None  # this row's raw CAN yaw rate and rear-axle speed, for the gain
+        self._row_speed: float | None = None
         self.reset()
 
     def reset(self) -> None:
@@ -170,8 +177,10 @@ class PoseFilter:
         z, z_var = (None, None) if skip_model else (est.z, z_var)
         if coarse and self.calibrated and z is not None and self.config.coarse_model_clamp_sigma is not None \
                 and valid[_YAW_RATE] and (substituted is None or not substituted[_YAW_RATE]):
-            z = self._held_to_reading(z, float(values[_YAW_RATE]))
+            z = self._held_to_reading(z, float(values[_YAW_RATE]) * self.yaw_gain_factor)
         cues = standstill = False
+        if self._gain_on:
+            self._gain_row(values, valid, substituted)
         if self.calibrated:
             # the model's z and the raw cues in one update (Ekf.step_with_cues)
             ekf_status, cues = self.ekf.step_with_cues(z, z_var, *self._cue_values(values, valid, substituted,
@@ -189,6 +198,31 @@ class PoseFilter:
         if gnss_fused and self.calibrated:
             self._scale_from_gnss(fix, t_s)
         return FilterStep(ekf_status, model_used, gnss_fused, cues, standstill)
+
+    @property
+    def gain_learned(self) -> bool:
+        """Whether this filter learns and applies the CAN yaw rate's gain (calibrated, and the option on)."""
+        return self._gain_on
+
+    @property
+    def yaw_gain_factor(self) -> float:
+        """What the CAN yaw rate is multiplied by before it is a cue: ``1 / (1 + gain)`` (1 with the gain off)."""
+        return 1.0 / (1.0 + self.yaw_gain.gain) if self._gain_on else 1.0
+
+    def _gain_row(self, values: np.ndarray, valid: np.ndarray, substituted: np.ndarray | None) -> None:
+        """This row's raw yaw rate into the gain estimator (a missing or substituted one ends its chunk)."""
+        ok = valid[_YAW_RATE] and (substituted is None or not substituted[_YAW_RATE])
+        self._row_yaw = float(values[_YAW_RATE]) if ok else None
+        self._row_speed = _rear_speed(values, valid)
+        self.yaw_gain.yaw_rate(self._row_yaw, self.dt_s)
+
+    def _gain_heading(self, t_s: float, psi: float) -> None:
+        """A fused GNSS heading as gain evidence, when the gyro is fine enough to learn from (quantisation without
+        dither leaves an error that follows the turn) and the row had a yaw rate and a rear-axle speed."""
+        fine = self._resolution_measured and self.yaw_resolution_radps < self.config.yaw_gain_max_resolution_radps
+        if fine and self._row_yaw is not None and self._row_speed is not None \
+                and self._row_speed >= self.config.gnss_heading_min_speed_mps:
+            self.yaw_gain.heading(t_s, psi, self._row_yaw, self._row_speed)
 
     def _held_to_reading(self, z: np.ndarray, yaw_rate: float) -> np.ndarray:
         """``z`` with its omega_z inside the interval a coarse CAN reading ``yaw_rate`` allows: the reading less the
@@ -295,6 +329,8 @@ class PoseFilter:
         yaw_var = self._yaw_cue_var
         if yaw is not None:
             self._track_resolution(yaw)
+            if self._gain_on:
+                yaw *= self.yaw_gain_factor
         elif cfg.substitute_yaw_cue and substituted is not None and substituted[_YAW_RATE] \
                 and substitute_std is not None and math.isfinite(substitute_std[_YAW_RATE]):
             # the plausibility stage's substitute (the gyro less an offset jump, or the others' rotation), with
@@ -400,6 +436,8 @@ class PoseFilter:
                 psi = yaw_var = None  # position fine, heading implausible: fuse the position only
         status = self.ekf.fuse_pose(pos, std_m ** 2, psi, yaw_var)  # type: ignore[union-attr]
         if status is StepStatus.SUCCESS:
+            if psi is not None and self._gain_on:
+                self._gain_heading(t_s, float(psi))
             self._last_fix_t = t_s
             self._last_abs_t = t_s
             return True
@@ -463,4 +501,6 @@ class PoseFilter:
                 "wheel_scale_pct": 100.0 * est[1], "wheel_scale_std_pct": 100.0 * std[1],
                 "model_omega_bias_dps": math.degrees(est[2]), "standstill_updates": self.n_standstill_updates,
                 "yaw_rate_resolution_dps": math.degrees(self.yaw_resolution_radps)}
+            if self._gain_on:
+                out["calibration"].update(self.yaw_gain.summary())
         return out

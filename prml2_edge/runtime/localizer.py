@@ -113,6 +113,11 @@ class LocalizerConfig:
     # a road it never saw (snow) can then be no further from the truth than the coarse reading's interval. 3: the
     # usual gate, not tuned (on validation 1, 3 and 6 changed the 60 s RMSE by at most 0.04 m; issue 26).
     coarse_model_clamp_sigma: float | None = 3.0
+    # The CAN yaw rate's gain, learned from GNSS heading in turns over drives (runtime/yaw_gain.py; kept in the
+    # calibration file): the yaw-rate cue is divided by 1 + gain. Learned only from a gyro finer than
+    # yaw_gain_max_resolution (the 1.28 deg/s ReV-StED sensor's quantisation follows the turn: its fit left ~1 %).
+    yaw_gain_calibration: bool = True
+    yaw_gain_max_resolution_radps: float = 1.0 * schema.DEG_TO_RAD
 
     def __post_init__(self) -> None:
         if self.stride < 1:
@@ -307,6 +312,14 @@ class StreamingLocalizer:
 
     def calibration(self) -> tuple[np.ndarray, np.ndarray] | None:
         return self.filter.calibration()
+
+    def restore_yaw_gain(self, info: float, info_c: float) -> None:
+        """Start the CAN yaw rate's gain from evidence saved by earlier drives (a restored state file)."""
+        self.filter.yaw_gain.restore(info, info_c)
+
+    def yaw_gain_state(self) -> dict | None:
+        """The gain evidence to save (None with the gain calibration off)."""
+        return self.filter.yaw_gain.state() if self.filter.gain_learned else None
 
     def step(self, values: np.ndarray, valid: np.ndarray, t_s: float, gnss: GnssFix | None = None,
              discontinuity: bool = False, bus_silent: bool = False, substituted: np.ndarray | None = None,

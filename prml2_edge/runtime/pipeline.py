@@ -190,11 +190,13 @@ class Pipeline:
         restored = self.calibration_file.load()
         if restored is not None:
             self.localizer.restore_calibration(*restored)
+        if self.calibration_file.yaw_gain is not None:
+            self.localizer.restore_yaw_gain(*self.calibration_file.yaw_gain)
 
     def _save_calibration(self, t_s: float | None) -> None:
         cal = self.localizer.calibration()
         if self.calibration_file is not None and cal is not None:
-            self.calibration_file.save(*cal, t_s=t_s)
+            self.calibration_file.save(*cal, t_s=t_s, yaw_gain=self.localizer.yaw_gain_state())
 
     @property
     def model(self):
