@@ -16,7 +16,14 @@ so each row differs from the next by one choice only, on the same windows. Varia
   model's omega_z variance only times the metadata's 5 s factor: there the quantisation error is slow and the
   model carries the yaw rate step by step;
 * ``+ coarse gyro: model held to the reading's interval``: there the model's omega_z is also held within half a
-  resolution step and 3 sigma of the reading less the offset estimate (the runtime's default).
+  resolution step and 3 sigma of the reading less the offset estimate (the runtime's default before the gain);
+* ``+ gyro gain learned over the unit's earlier drives``: the CAN yaw rate divided by ``1 +`` the gain its
+  calibration file learned from GNSS heading on 20 min of the car's earlier drives
+  (``prml2_edge.evaluation.unit_history``, ``runtime/yaw_gain.py``; the runtime's default). Every row above has
+  the gain calibration off.
+
+Beside OSD, ``OSD, gyro gain from the unit's earlier drives``: the OSD baseline on the CAN yaw rate divided by the
+same learned gain, as a model-free filter with the same calibration file would run.
 
 Bounds, not runtime options: the same windows with the CAN yaw rate divided by ``1 + g``, ``g`` the gyro gain error
 the simulator drew for the drive (``sensor_errors.yaw_scale_error``), as a gain calibration that knew it would
@@ -32,7 +39,7 @@ paper's (from the true pose, no GNSS) and the deployment protocol (30 s of GNSS 
 Usage::
 
     .venv/bin/python benchmarks/filter_ablation.py --data data/bench --model export/default/prml2_edge.onnx \\
-        [--splits val test] [--jobs 2] [--max-windows N]
+        [--splits val test] [--jobs 2] [--max-windows N] [--history-min 20]
     .venv/bin/python benchmarks/render_tables.py
 """
 
@@ -63,24 +70,29 @@ from prml2_edge.evaluation.protocol import (
     split_tasks,
     tune_osd,
 )
+from prml2_edge.evaluation.unit_history import HISTORY_MINUTES
 from prml2_edge.progress import Progress
+from prml2_edge.runtime.yaw_gain import YawGainEstimator
 from prml2_edge.schema import SIGNAL_BY_NAME
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "results" / "filter_ablation.json"
 OSD = "OSD-Baseline"
 DEG = np.pi / 180.0
-DEFAULT = "+ coarse gyro: model held to the reading's interval (the runtime's default)"
+HELD = "+ coarse gyro: model held to the reading's interval"
+DEFAULT = "+ gyro gain learned over the unit's earlier drives (the runtime's default)"
+OSD_GAIN = "OSD, gyro gain from the unit's earlier drives"
 
 
 NO_COARSE = ("coarse_yaw_resolution_radps", float("inf"))  # the coarse-gyro inflation off
 NO_HOLD = ("coarse_model_clamp_sigma", None)  # the coarse-gyro hold off
+NO_GAIN = ("yaw_gain_calibration", False)  # the learned gyro gain off
 GAIN_RESIDUAL = 0.003  # the gain known to 0.3 % (1 sigma)
 BOUNDS = {"bound: OSD, the drive's gyro gain known": (OSD, 0.0),
-          "bound: the default, the drive's gyro gain known": (DEFAULT, 0.0),
-          "bound: the default, the gyro gain known to 0.3 %": (DEFAULT, GAIN_RESIDUAL)}
+          "bound: the default, the drive's gyro gain known": (HELD, 0.0),
+          "bound: the default, the gyro gain known to 0.3 %": (HELD, GAIN_RESIDUAL)}
 PREVIOUS = (("model_offset_share", 1.0), ("cal_model_bias_tau_s", 5.0),
-            ("cal_model_bias_std_radps", 0.2 * DEG), ("model_omega_var_inflation", None), NO_COARSE)
+            ("cal_model_bias_std_radps", 0.2 * DEG), ("model_omega_var_inflation", None), NO_COARSE, NO_GAIN)
 
 
 def variants(model: str) -> dict[str, ModelSpec]:
@@ -96,8 +108,9 @@ def variants(model: str) -> dict[str, ModelSpec]:
             "+ slow error 0.3 °/s, 60 s": replace(cal, filter=tuple({**prev, "model_offset_share": 0.0,
                                                                     "cal_model_bias_tau_s": 60.0,
                                                                     "cal_model_bias_std_radps": 0.3 * DEG}.items())),
-            "+ fast part inflated 5e4": replace(cal, filter=(NO_COARSE,)),
-            "+ coarse gyro: metadata inflation": replace(cal, filter=(NO_HOLD,)),
+            "+ fast part inflated 5e4": replace(cal, filter=(NO_COARSE, NO_GAIN)),
+            "+ coarse gyro: metadata inflation": replace(cal, filter=(NO_HOLD, NO_GAIN)),
+            HELD: replace(cal, filter=(NO_GAIN,)),
             DEFAULT: cal}
 
 
@@ -130,11 +143,16 @@ def _one_task(args):
 
 
 def bound_specs(specs: dict[str, ModelSpec], osd_spec: ModelSpec, gains: dict[str, float], task) -> dict:
-    """The bound rows for ``task``: name -> (spec, the drive's drawn gain error, residual)."""
-    if task.drive not in gains:
-        return {}
-    return {name: (osd_spec if ref == OSD else specs[ref], gains[task.drive], residual)
-            for name, (ref, residual) in BOUNDS.items()}
+    """The rows on a corrected gyro for ``task``: name -> (spec, gain, residual): the bounds with the drive's drawn
+    gain error, and OSD with the gain its unit's history taught (0 for a coarse gyro: its gain is not learned)."""
+    learned = YawGainEstimator(1.0)
+    if task.yaw_gain is not None:
+        learned.restore(*task.yaw_gain)
+    out = {OSD_GAIN: (osd_spec, learned.gain, 0.0)}
+    if task.drive in gains:
+        out.update({name: (osd_spec if ref == OSD else specs[ref], gains[task.drive], residual)
+                    for name, (ref, residual) in BOUNDS.items()})
+    return out
 
 
 def run_split(tasks, specs: dict[str, ModelSpec], jobs: int, label: str, bounds=lambda task: {}) -> dict[str, list]:
@@ -200,10 +218,12 @@ def measure(args: argparse.Namespace) -> dict:
     osd_spec = tune_osd(ModelSpec(OSD, "osd"), val, jobs=args.jobs)
     gains = {d.name: float(d.meta["sensor_errors"]["yaw_scale_error"]) for d in dataset.drives
              if "yaw_scale_error" in d.meta.get("sensor_errors", {})}
-    doc = {"data": str(args.data), "model": str(args.model), "osd_q_scale": osd_spec.q_scale, "splits": {}}
+    doc = {"data": str(args.data), "model": str(args.model), "osd_q_scale": osd_spec.q_scale,
+           "history_min": args.history_min, "splits": {}}
     for split in args.splits:
         for protocol, pre in (("paper", 0.0), ("deployment", DEPLOYMENT_PREROLL_S)):
-            tasks = split_tasks(dataset, split, max_windows=args.max_windows, preroll_s=pre)
+            tasks = split_tasks(dataset, split, max_windows=args.max_windows, preroll_s=pre,
+                                history_min=args.history_min)
             if not tasks:
                 continue
             if "replay_exact_max_m" not in doc:
@@ -241,15 +261,16 @@ def car_table(doc: dict) -> list[str]:
     names = list(next(iter(doc["splits"].values())))
     prev = next(n for n in names if n.startswith("previous default"))
     default = next(n for n in names if n.endswith("(the runtime's default)"))
-    known = [n for n in names if n == "bound: the default, the drive's gyro gain known"]  # absent in older runs
+    known = "bound: the default, the drive's gyro gain known"
+    extra = [n for n in (OSD_GAIN, known) if n in names]  # absent in older runs
+    heads = {OSD_GAIN: " OSD, learned gain |", known: " the default, gain known |"}
     out = ["", "Per car, 60 s RMSE × OSD on the same car's windows (paired difference to OSD [m], 95 %):", "",
-           "| split / protocol | car | OSD m | the default | previous default |"
-           + " the default, gain known |" * len(known),
-           "|---|---|---:|---|---|" + "---|" * len(known)]
+           "| split / protocol | car | OSD m | the default | previous default |" + "".join(heads[n] for n in extra),
+           "|---|---|---:|---|---|" + "---|" * len(extra)]
     for key, rows in doc["splits"].items():
         for car, ref in rows[OSD]["per_car"].items():
             cells = []
-            for name in (default, prev, *known):
+            for name in (default, prev, *extra):
                 c = rows[name]["per_car"][car]
                 lo, hi = c["paired_vs_osd"]["rmse_diff_ci95_m"]
                 cells.append(f"{c['ratio_to_osd']:.2f}× [{lo:+.1f}, {hi:+.1f}]")
@@ -264,6 +285,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--splits", nargs="+", default=["val", "test"])
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--max-windows", type=int, default=None, help="at most N windows per drive segment")
+    p.add_argument("--history-min", type=float, default=HISTORY_MINUTES,
+                   help="minutes of the car's earlier drives behind its calibration file's gyro gain (0: none)")
     p.add_argument("--out", default=str(OUT), help=f"result JSON (default {OUT.relative_to(HERE.parent)})")
     args = p.parse_args(argv)
     t0 = time.time()

@@ -36,6 +36,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preroll-s", type=float, default=30.0, metavar="S",
                         help="deployment protocol: every test window also after S s of GNSS-aided driving "
                              "(10 Hz fixes, 1.5 m); 0 skips it (default 30)")
+    parser.add_argument("--unit-history-min", type=float, default=20.0, metavar="MIN",
+                        help="minutes of each simulated car's earlier drives whose GNSS heading taught its "
+                             "calibration file the gyro's gain, used by the '+cal' filter; 0: every drive a first "
+                             "drive (default 20)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -50,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     metrics = evaluate(args.data, specs, args.out, stride=args.stride, jobs=args.jobs, ablation=args.ablation,
                        max_windows=args.max_windows, snow=not args.no_snow, tum=not args.no_tum,
                        plots=not args.no_plots, window_s=args.window_s, calibration=args.calibration,
-                       preroll_s=args.preroll_s)
+                       preroll_s=args.preroll_s, history_min=args.unit_history_min)
     print(f"{'model':<28} {'dry RMSE [m]':>14} {'dry ME [m]':>12} {'drift %':>8} {'snow RMSE [m]':>14} "
           f"{'deploy RMSE':>12} {'deploy drift %':>15} {'2σ / 3σ %':>12}")
     for name, m in metrics["models"].items():

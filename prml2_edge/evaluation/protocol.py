@@ -86,6 +86,9 @@ class WindowTask:
     preroll: int = 0
     pre_pose_gt: np.ndarray | None = None
     pre_z_gt: np.ndarray | None = None
+    # the evidence on the CAN yaw rate's gain the car's calibration file holds from its earlier drives:
+    # (information, information-weighted sum), evaluation.unit_history; None: no history
+    yaw_gain: tuple[float, float] | None = None
 
     @property
     def key(self) -> str:
@@ -117,7 +120,8 @@ class WindowResult(DeadReckoningErrors):
 
 
 def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: int = schema.WINDOW_LEN,
-                max_windows: int | None = None, preroll_s: float = 0.0) -> list[WindowTask]:
+                max_windows: int | None = None, preroll_s: float = 0.0,
+                history_min: float = 0.0) -> list[WindowTask]:
     """Non-overlapping dead-reckoning windows of ``split`` (``val``, ``test``, ``snow`` or ``heldout``).
 
     A window needs ``window_len - 1`` rows of history before its start; the first window of a
@@ -125,7 +129,11 @@ def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: 
     per segment (None: all). ``preroll_s`` > 0 (the deployment protocol): each window is preceded
     by that much GNSS-aided driving, whose rows (and history before them) may reach back before
     the segment (onboard signals a car would have had; their ground truth only makes the fixes).
+    ``history_min`` > 0: each simulated drive's car also has that many minutes of earlier drives, whose GNSS
+    heading taught its calibration file the gyro's gain (:func:`~prml2_edge.evaluation.unit_history.gain_evidence`).
     """
+    from prml2_edge.evaluation.unit_history import gain_evidence
+
     steps = int(round(window_s / schema.DT_S))
     pre = int(round(preroll_s / schema.DT_S))
     hist = window_len - 1
@@ -134,6 +142,7 @@ def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: 
         if not drive.has_ground_truth:
             continue
         mu = float(drive.meta.get("mu", 1.0))
+        evidence = gain_evidence(drive, history_min) if history_min > 0.0 else None
         starts = list(range(max(a, hist + pre), b - steps + 1, steps))
         if max_windows is not None:
             starts = starts[:max_windows]
@@ -145,7 +154,8 @@ def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: 
             tasks.append(WindowTask(split, drive.name, start, hist,
                                     drive.onboard[start - pre - hist : start + steps],
                                     drive.t_s[sl], drive.z_gt[sl], drive.pose_gt[sl], mu, bias, pre,
-                                    drive.pose_gt[ps] if pre else None, drive.z_gt[ps] if pre else None))
+                                    drive.pose_gt[ps] if pre else None, drive.z_gt[ps] if pre else None,
+                                    evidence))
     return tasks
 
 
@@ -272,6 +282,8 @@ def run_window(spec: ModelSpec, task: WindowTask, stride: int = 1, model=None) -
                                                                                                       spec.q_scale))
     if spec.calibration and spec.standstill_calibration:
         restore_standstill_calibration(loc, task.bias)
+        if task.yaw_gain is not None:
+            loc.filter.yaw_gain.restore(*task.yaw_gain)
     if not spec.guard:
         loc.a_max_mps2 = NO_GUARD_A_MAX_MPS2  # ablation: no friction-circle bound (speed/yaw-rate bounds stay)
     traj = loc.run_arrays(task.onboard, _start_state(task), start_index=task.history, gnss=simulated_fixes(task))

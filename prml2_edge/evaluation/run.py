@@ -6,6 +6,7 @@ import logging
 import time
 from collections.abc import Sequence
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 from prml2_edge import schema
@@ -24,6 +25,7 @@ from prml2_edge.evaluation.protocol import (
     tune_constant_variance,
     tune_osd,
 )
+from prml2_edge.evaluation.unit_history import HISTORY_MINUTES
 from prml2_edge.progress import Progress
 
 log = logging.getLogger(__name__)
@@ -52,7 +54,8 @@ def _summaries(results: dict[str, list[WindowResult]], tasks: Sequence[WindowTas
 def evaluate(data: str | Path, specs: Sequence[ModelSpec], out_dir: str | Path, *, stride: int = 1, jobs: int = 1,
              ablation: str | None = None, max_windows: int | None = None, snow: bool = True, tum: bool = True,
              plots: bool = True, progress: bool | None = None, window_s: float = DR_WINDOW_S,
-             calibration: str = "both", preroll_s: float = DEPLOYMENT_PREROLL_S) -> dict:
+             calibration: str = "both", preroll_s: float = DEPLOYMENT_PREROLL_S,
+             history_min: float = HISTORY_MINUTES) -> dict:
     """Run the protocol and write ``report.md``, ``metrics.json``, PNG figures and TUM files to ``out_dir``.
 
     Parameters
@@ -73,6 +76,9 @@ def evaluate(data: str | Path, specs: Sequence[ModelSpec], out_dir: str | Path, 
         (10 Hz fixes, 1.5 m); 0 skips it.
     max_windows:
         At most this many 60 s windows per drive segment (None: all), for quick runs.
+    history_min:
+        Minutes of each simulated car's earlier drives whose GNSS heading taught its calibration file the gyro's
+        gain (:mod:`~prml2_edge.evaluation.unit_history`; used by ``+cal`` models); 0: a first drive.
 
     Returns
     -------
@@ -87,7 +93,7 @@ def evaluate(data: str | Path, specs: Sequence[ModelSpec], out_dir: str | Path, 
     dataset = load_dataset(data)
     # validation windows tune the OSD baseline's noise and the ablation's constant variance; ONNX models need none
     need_val = target is not None or any(s.kind == "osd" for s in specs)
-    sets = _task_sets(dataset, data, window_s, max_windows, snow, preroll_s, need_val)
+    sets = _task_sets(dataset, data, window_s, max_windows, snow, preroll_s, need_val, history_min)
     bar = Progress(_n_runs(specs, target, sets, calibration), desc="evaluate", unit="win", enabled=progress)
 
     def tick(res: WindowResult) -> None:
@@ -106,6 +112,7 @@ def evaluate(data: str | Path, specs: Sequence[ModelSpec], out_dir: str | Path, 
     bar.close()
 
     metrics = _metrics(data, dataset, stride, window_s, tuning, tuned, sets, results, preroll_s)
+    metrics["unit_history_min"] = history_min
     metrics["per_vehicle"] = _per_vehicle(dataset, tuned, sets, results)
     if abl_rows:
         metrics["ablation"] = {"model": target.name, "rows": abl_rows}
@@ -136,19 +143,18 @@ def _ablation_target(specs: Sequence[ModelSpec], ablation: str | None) -> ModelS
 
 
 def _task_sets(dataset, data, window_s: float, max_windows: int | None, snow: bool,
-               preroll_s: float, need_val: bool = True) -> dict[str, list[WindowTask]]:
+               preroll_s: float, need_val: bool = True, history_min: float = 0.0) -> dict[str, list[WindowTask]]:
     """``val``, ``test``, ``snow`` and ``deployment`` (test windows after a GNSS pre-roll) windows."""
-    sets = {"val": split_tasks(dataset, "val", window_s, max_windows=max_windows) if need_val else [],
-            "test": split_tasks(dataset, "test", window_s, max_windows=max_windows)}
+    tasks = partial(split_tasks, dataset, window_s=window_s, max_windows=max_windows, history_min=history_min)
+    sets = {"val": tasks("val") if need_val else [], "test": tasks("test")}
     if need_val and not sets["val"]:
         raise _no_windows(dataset, data, "val", window_s, "to tune the OSD baseline's noise (and the ablation) on")
     if not sets["test"]:
         raise _no_windows(dataset, data, "test", window_s, "to score the models on")
-    sets["snow"] = split_tasks(dataset, "snow", window_s, max_windows=max_windows) if snow else []
-    sets["deployment"] = split_tasks(dataset, "test", window_s, max_windows=max_windows, preroll_s=preroll_s) \
-        if preroll_s > 0 else []
+    sets["snow"] = tasks("snow") if snow else []
+    sets["deployment"] = tasks("test", preroll_s=preroll_s) if preroll_s > 0 else []
     # a car no model was trained on (the benchmark's held-out vehicle): zero-shot, or after fine-tuning on its own
-    sets["heldout"] = split_tasks(dataset, "heldout", window_s, max_windows=max_windows) if dataset.heldout else []
+    sets["heldout"] = tasks("heldout") if dataset.heldout else []
     return sets
 
 
