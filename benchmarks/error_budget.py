@@ -43,8 +43,9 @@ from prml2_edge import schema
 from prml2_edge.bench.machine import machine_info
 from prml2_edge.data.datasets import load_dataset
 from prml2_edge.data.simulate.fleet import CARS
+from prml2_edge.evaluation.consumer_gnss import GNSS_HEADING_MIN_SPEED_MPS, GNSS_HEADING_STD_DEG, GNSS_RATE_HZ
 from prml2_edge.evaluation.osd import drive_bias
-from prml2_edge.evaluation.protocol import GNSS_HEADING_MIN_SPEED_MPS, GNSS_HEADING_STD_DEG, GNSS_RATE_HZ, split_tasks
+from prml2_edge.evaluation.protocol import split_tasks
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "results" / "error_budget.json"

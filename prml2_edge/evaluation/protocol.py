@@ -23,6 +23,12 @@ import numpy as np
 from prml2_edge import schema
 from prml2_edge.dead_reckoning import DeadReckoningErrors, path_length_m
 from prml2_edge.ekf.numpy_ekf import default_process_noise, mahalanobis2, wrap_angle
+from prml2_edge.evaluation.consumer_gnss import (
+    GNSS_HEADING_MIN_SPEED_MPS,
+    GNSS_HEADING_STD_DEG,
+    GNSS_POS_STD_M,
+    GNSS_RATE_HZ,
+)
 from prml2_edge.evaluation.osd import StandstillBias, drive_bias
 from prml2_edge.guard import physics_guard
 from prml2_edge.schema import EkfState, Z
@@ -159,12 +165,9 @@ def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: 
     return tasks
 
 
-# Deployment protocol (method.md deviation, docs/deviations.md): fixes as a consumer receiver gives them.
+# Deployment protocol (method.md deviation, docs/deviations.md): fixes as a consumer receiver gives them
+# (evaluation.consumer_gnss).
 DEPLOYMENT_PREROLL_S = 30.0  # GNSS-aided driving before each outage window [s]
-GNSS_RATE_HZ = 10.0
-GNSS_POS_STD_M = 1.5
-GNSS_HEADING_STD_DEG = 2.0
-GNSS_HEADING_MIN_SPEED_MPS = 2.0
 
 
 def simulated_fixes(task: WindowTask) -> dict[int, object]:

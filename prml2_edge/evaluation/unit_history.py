@@ -6,9 +6,8 @@ The benchmark's drives each draw their own yaw-rate gain error; a real sensor ke
 standstill taught. The evaluation gives each simulated drive that history: ``drives`` more drives of the same car,
 ``minutes`` in all, ``mixed`` family, dry, each with the drive's own gain plus a per-drive variation
 (``variation``, one sigma: temperature), every other sensor error drawn anew, and consumer GNSS fixes
-(:data:`~prml2_edge.evaluation.protocol.GNSS_RATE_HZ`, course over ground with
-:data:`~prml2_edge.evaluation.protocol.GNSS_HEADING_STD_DEG` white noise while moving). None of it is the drive
-itself; everything is seeded by the drive's name. A gyro the runtime measures coarser than
+(:mod:`~prml2_edge.evaluation.consumer_gnss`, course over ground with its heading noise while moving). None of it
+is the drive itself; everything is seeded by the drive's name. A gyro the runtime measures coarser than
 ``LocalizerConfig.yaw_gain_max_resolution_radps`` learns nothing (the runtime does not learn its gain either).
 """
 
@@ -20,6 +19,7 @@ import zlib
 import numpy as np
 
 from prml2_edge import schema
+from prml2_edge.evaluation.consumer_gnss import GNSS_HEADING_MIN_SPEED_MPS, GNSS_HEADING_STD_DEG, GNSS_RATE_HZ
 from prml2_edge.runtime.yaw_gain import YawGainEstimator
 
 HISTORY_MINUTES = 20.0
@@ -60,7 +60,7 @@ def _simulate_history(drive, gain: float, minutes: float, drives: int, variation
 
     meta = drive.meta
     rng = np.random.default_rng([zlib.crc32(drive.name.encode()), 0x6741494E])  # "gAIN"
-    est = YawGainEstimator(math.radians(_heading_std_deg()))
+    est = YawGainEstimator(math.radians(GNSS_HEADING_STD_DEG))
     for j in range(drives):
         g = gain + float(rng.normal(0.0, variation))
         hist = simulate_drive(minutes / drives, 1.0, int(rng.integers(1 << 31)), "mixed", f"{drive.name}_history{j}",
@@ -69,17 +69,9 @@ def _simulate_history(drive, gain: float, minutes: float, drives: int, variation
     return est.info, est.info_c
 
 
-def _heading_std_deg() -> float:
-    from prml2_edge.evaluation.protocol import GNSS_HEADING_STD_DEG
-
-    return GNSS_HEADING_STD_DEG
-
-
 def feed(est: YawGainEstimator, drive, rng: np.random.Generator) -> None:
     """Run ``est`` over ``drive``: its CAN yaw rate every row, a GNSS course-over-ground fix at the protocol's rate
     while moving."""
-    from prml2_edge.evaluation.protocol import GNSS_HEADING_MIN_SPEED_MPS, GNSS_RATE_HZ
-
     yaw = drive.onboard[:, schema.SIGNAL_BY_NAME["yaw_rate_radps"].index].tolist()
     every = int(round(schema.SAMPLE_RATE_HZ / GNSS_RATE_HZ))
     vx, vy = drive.z_gt[:, 0], drive.z_gt[:, 1]
