@@ -183,6 +183,8 @@ def summarise(results: dict[str, list], osd: list) -> dict:
                      "ratio_to_osd": s["rmse_mean_m"] / ref, "coverage_pct": cov,
                      "paired_vs_osd": None if name == OSD else paired_comparison(osd, res),
                      "per_car": per_car(res, osd)}
+        if OSD_GAIN in results and name != OSD_GAIN and name in (DEFAULT, HELD):  # against OSD with the same gain
+            out[name]["paired_vs_osd_gain"] = paired_comparison(results[OSD_GAIN], res)
     return out
 
 
@@ -248,10 +250,26 @@ def markdown(doc: dict) -> list[str]:
             c = coverage_text(r["coverage_pct"])
             out.append(f"| {key} | {name} | {r['rmse_mean_m']:.2f} ({r['ratio_to_osd']:.2f}×) | "
                        f"{r['drift_mean_pct']:.2f} | {paired} | {c} | {r['n_windows']} |")
-    out += car_table(doc)
+    out += car_table(doc) + same_gain_table(doc)
     out += ["", f"Replay check: the default filter on replayed outputs against the model itself, largest position "
             f"difference {doc.get('replay_exact_max_m', float('nan')):.1e} m. OSD Q scale {doc['osd_q_scale']:g} "
             f"(tuned on val). {doc['wall_s']:.0f} s."]
+    return out
+
+
+def same_gain_table(doc: dict) -> list[str]:
+    """The filters against OSD given the same learned gain (what the model adds beyond the calibration file)."""
+    rows = [(key, name, r) for key, split in doc["splits"].items() for name, r in split.items()
+            if "paired_vs_osd_gain" in r]
+    if not rows:
+        return []
+    out = ["", "Against OSD with the same learned gyro gain (mean of (filter − OSD with gain) RMSE per window [m], "
+           "95 %):", "", "| split / protocol | filter | RMSE m | OSD with the gain m | ratio | paired m |",
+           "|---|---|---:|---:|---:|---|"]
+    for key, name, r in rows:
+        ref = doc["splits"][key][OSD_GAIN]["rmse_mean_m"]
+        out.append(f"| {key} | {name} | {r['rmse_mean_m']:.2f} | {ref:.2f} | {r['rmse_mean_m'] / ref:.2f}× | "
+                   f"{paired_text(r['paired_vs_osd_gain'])} |")
     return out
 
 

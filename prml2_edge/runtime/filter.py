@@ -91,8 +91,8 @@ class PoseFilter:
         # the CAN yaw rate's gain: evidence over drives (the calibration file), so not reset with the EKF
         self.yaw_gain = YawGainEstimator(math.radians(config.gnss_heading_std_deg))
         self._gain_on = self.calibrated and bool(config.yaw_gain_calibration)
-        self._row_yaw: float | None = None  # this row's raw CAN yaw rate and rear-axle speed, for the gain
-        self._row_speed: float | None = None
+        self._row_yaw: float | None = None  # this row's raw CAN yaw rate, for the gain
+        self._row: tuple[np.ndarray, np.ndarray] | None = None  # this row's values and validity (its speed)
         self.reset()
 
     def reset(self) -> None:
@@ -213,16 +213,16 @@ class PoseFilter:
         """This row's raw yaw rate into the gain estimator (a missing or substituted one ends its chunk)."""
         ok = valid[_YAW_RATE] and (substituted is None or not substituted[_YAW_RATE])
         self._row_yaw = float(values[_YAW_RATE]) if ok else None
-        self._row_speed = _rear_speed(values, valid)
+        self._row = (values, valid)
         self.yaw_gain.yaw_rate(self._row_yaw, self.dt_s)
 
     def _gain_heading(self, t_s: float, psi: float) -> None:
         """A fused GNSS heading as gain evidence, when the gyro is fine enough to learn from (quantisation without
         dither leaves an error that follows the turn) and the row had a yaw rate and a rear-axle speed."""
         fine = self._resolution_measured and self.yaw_resolution_radps < self.config.yaw_gain_max_resolution_radps
-        if fine and self._row_yaw is not None and self._row_speed is not None \
-                and self._row_speed >= self.config.gnss_heading_min_speed_mps:
-            self.yaw_gain.heading(t_s, psi, self._row_yaw, self._row_speed)
+        speed = _rear_speed(*self._row) if fine and self._row_yaw is not None and self._row is not None else None
+        if speed is not None and speed >= self.config.gnss_heading_min_speed_mps:
+            self.yaw_gain.heading(t_s, psi, self._row_yaw, speed)
 
     def _held_to_reading(self, z: np.ndarray, yaw_rate: float) -> np.ndarray:
         """``z`` with its omega_z inside the interval a coarse CAN reading ``yaw_rate`` allows: the reading less the
