@@ -26,12 +26,14 @@ Usage::
 
     .venv/bin/python benchmarks/robustness.py [--max-windows 2] [--cars reference,van_fwd] [--minutes 3]
         [--workers 2] [--model export/default/prml2_edge.onnx] [--offset-dps 0.4] [--split val] [--calibration]
+        [--history-min 20]
     .venv/bin/python benchmarks/render_tables.py   # the docs/evaluation.md table from the JSON
 
 ``--split val`` reports the fleet's validation drives instead (re-simulated the same way), so that candidate
 models are compared without touching test; OSD is then tuned on the drives it is scored on.
 ``--calibration`` scores the model through the runtime's default filter instead (the issue's targets are
-for calibration off; this shows what a user's car gets).
+for calibration off; this shows what a user's car gets), its calibration file holding the gyro gain that
+``--history-min`` minutes of the car's earlier drives taught (default 20, as ``prml2 evaluate``; 0: a first drive).
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ from prml2_edge.data.datasets import resolve_recipe
 from prml2_edge.data.simulate import simulate_drive
 from prml2_edge.evaluation.metrics import dr_summary, paired_comparison
 from prml2_edge.evaluation.protocol import OSD_Q_SCALES, ModelSpec, Tuning, run_all, split_tasks, tune_osd
+from prml2_edge.evaluation.unit_history import HISTORY_MINUTES
 from prml2_edge.progress import Progress
 
 HERE = Path(__file__).resolve().parent
@@ -144,13 +147,19 @@ def reported_groups(split: str) -> tuple[str, ...]:
     return ("val",) if split == "val" else GROUPS
 
 
+def history_min(args) -> float:
+    """Minutes of unit history behind the gyro gain: only the runtime's filter (``--calibration``) uses one."""
+    return args.history_min if args.calibration else 0.0
+
+
 def build_tasks(specs: dict[str, list[dict]], case_offsets: dict[str, float], args) -> tuple[dict, list]:
     """Re-simulated windows: ``{case: {group: [WindowTask]}}`` and the validation windows (no offset)."""
     tasks: dict = {}
     groups = reported_groups(args.split)
     for case, off in case_offsets.items():
         drives = _Drives({g: [resimulate(s, off, args.minutes) for s in specs[g]] for g in groups})
-        tasks[case] = {g: split_tasks(drives, g, max_windows=args.max_windows) for g in groups}
+        tasks[case] = {g: split_tasks(drives, g, max_windows=args.max_windows, history_min=history_min(args))
+                       for g in groups}
     val = _Drives({"val": [resimulate(s, 0.0, args.minutes) for s in specs["val"]]})
     return tasks, split_tasks(val, "val", max_windows=args.max_windows)
 
@@ -267,6 +276,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="score the model through the runtime's default filter (calibration states and raw cues; "
                          "no standstill, no GNSS, so the offset is learned from the gyro against the model) instead "
                          "of the paper's; OSD stays the paper's")
+    ap.add_argument("--history-min", type=float, default=HISTORY_MINUTES,
+                    help="with --calibration: minutes of the car's earlier drives whose GNSS heading taught its "
+                         "calibration file the gyro's gain (0: every drive a first drive; default %(default)s)")
     ap.add_argument("--split", choices=("test", "val"), default="test",
                     help="score the test drives (default), or the fleet's validation drives to choose between models")
     ap.add_argument("--json", default=str(OUT))
@@ -280,6 +292,7 @@ def main(argv: list[str] | None = None) -> int:
     doc = {"started": started, "machine": machine_info(), "args": vars(args), "case_offsets_dps": case_offsets,
            "protocol": {"windows_s": 60, "from": "true pose", "gnss": "off",
                         "calibration": "model: runtime default" if args.calibration else "off",
+                        "unit_history_min": history_min(args),
                         "standstill": False, "osd_tuning": OSD_TUNING, **notes},
            "groups": report(results, tasks, specs)}
     doc["verdict"] = verdict(doc["groups"])
