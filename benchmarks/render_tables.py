@@ -173,6 +173,8 @@ RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., list[str]]]] = {
     "sim_realism": (("sim_realism",), sim_realism),
     "sensor_profile": (("sensor_profile",), sensor_profile),
     "robustness": (("robustness",), robustness),
+    "robustness_cal": (("robustness_cal",), robustness),  # --calibration: the runtime's filter
+    "robustness_cal_dep": (("robustness_cal_dep",), robustness),  # --calibration --preroll-s 30
     "cue_consistency": (("cue_consistency",), cue_consistency),
     "filter_ablation": (("filter_ablation",), filter_ablation),
     "error_budget": (("error_budget",), error_budget),
