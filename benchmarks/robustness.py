@@ -149,6 +149,23 @@ def reported_groups(split: str) -> tuple[str, ...]:
     return ("val",) if split == "val" else GROUPS
 
 
+def filter_override(text: str) -> tuple[str, float]:
+    """``FIELD=VALUE`` of ``--filter``: a numeric :class:`LocalizerConfig` field, checked here so a typo is one line."""
+    from dataclasses import fields
+
+    from prml2_edge.runtime.localizer import LocalizerConfig
+
+    name, sep, value = text.partition("=")
+    known = {f.name for f in fields(LocalizerConfig)}
+    if not sep or name not in known:
+        raise argparse.ArgumentTypeError(f"{text!r}: want FIELD=VALUE with FIELD a LocalizerConfig field "
+                                         "(prml2_edge/runtime/localizer.py)")
+    try:
+        return name, float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: the value must be a number") from None
+
+
 def history_min(args) -> float:
     """Minutes of unit history behind the gyro gain: only the runtime's filter (``--calibration``) uses one."""
     return args.history_min if args.calibration else 0.0
@@ -168,7 +185,7 @@ def build_tasks(specs: dict[str, list[dict]], case_offsets: dict[str, float], ar
 
 def run_cases(args, specs: dict[str, list[dict]], case_offsets: dict[str, float]) -> tuple[dict, dict, dict]:
     """Tune OSD, run model and OSD on every case; ``(results[case][method], tasks, tuning notes)``."""
-    model = ModelSpec("PRML2", "onnx", str(args.model), calibration=args.calibration)
+    model = ModelSpec("PRML2", "onnx", str(args.model), calibration=args.calibration, filter=tuple(args.filter))
     tasks, val_tasks = build_tasks(specs, case_offsets, args)
     n_test = sum(len(t) for c in tasks.values() for t in c.values())
     bar = Progress(len(val_tasks) * (1 + len(OSD_Q_SCALES)) + 2 * n_test, desc="robustness", unit="win")
@@ -285,6 +302,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--preroll-s", type=float, default=0.0,
                     help="the deployment protocol: each window after this many seconds of GNSS-aided driving (10 Hz "
                          "fixes, as prml2 evaluate --preroll-s; both methods fuse them); 0: from the true pose")
+    ap.add_argument("--filter", action="append", default=[], type=filter_override, metavar="FIELD=VALUE",
+                    help="with --calibration: a LocalizerConfig field of the model's filter set to a number "
+                         "(repeatable; e.g. cal_model_bias_std_radps=0.00175), to compare filter settings on val")
     ap.add_argument("--split", choices=("test", "val"), default="test",
                     help="score the test drives (default), or the fleet's validation drives to choose between models")
     ap.add_argument("--json", default=str(OUT))
@@ -301,7 +321,7 @@ def main(argv: list[str] | None = None) -> int:
                         "gnss": f"{args.preroll_s:g} s of fixes before each window, none in it" if args.preroll_s
                         else "off",
                         "calibration": "model: runtime default" if args.calibration else "off",
-                        "unit_history_min": history_min(args),
+                        "unit_history_min": history_min(args), "filter_overrides": dict(args.filter),
                         "standstill": False, "osd_tuning": OSD_TUNING, **notes},
            "groups": report(results, tasks, specs)}
     doc["verdict"] = verdict(doc["groups"])
