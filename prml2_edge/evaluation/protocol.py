@@ -235,9 +235,11 @@ def process_noise(model, q_scale: float = 1.0) -> np.ndarray:
 def _localizer_config(spec: ModelSpec, task: WindowTask, stride: int):
     from prml2_edge.runtime.localizer import LocalizerConfig
 
+    # the spec's overrides win over the protocol's receiver settings (an ablation may switch the heading fixes off)
+    kwargs = dict(gnss_pos_std_m=GNSS_POS_STD_M, gnss_heading_std_deg=GNSS_HEADING_STD_DEG,
+                  gnss_heading_min_speed_mps=GNSS_HEADING_MIN_SPEED_MPS) | dict(spec.filter)
     return LocalizerConfig(stride=stride, mu=task.mu, fuse_gnss=bool(task.preroll), calibration=spec.calibration,
-                           gnss_pos_std_m=GNSS_POS_STD_M, gnss_heading_std_deg=GNSS_HEADING_STD_DEG,
-                           gnss_heading_min_speed_mps=GNSS_HEADING_MIN_SPEED_MPS, **dict(spec.filter))
+                           **kwargs)
 
 
 def _start_state(task: WindowTask) -> np.ndarray:

@@ -278,3 +278,23 @@ def test_calibration_on_keeps_the_osd_reference_and_runs_table_3_through_the_sam
     rows = {(r["guard"], r["uncertainty"]): r["dead_reckoning_60s"] for r in metrics["ablation"]["rows"]}
     assert rows[(True, True)]["guard_fire_rate"] == 0.0
     assert rows[(False, True)]["rmse_mean_m"] == pytest.approx(rows[(True, True)]["rmse_mean_m"], abs=1e-9)
+
+
+def test_a_filter_override_wins_over_the_protocols_receiver_settings(tiny):
+    """The deployment protocol sets the receiver's heading speed; an ablation that switches heading fixes off
+    overrides it (it used to raise 'multiple values for keyword argument'), and the pre-roll then fuses positions
+    only, which changes the pose."""
+    from dataclasses import replace
+
+    from prml2_edge.evaluation.models import RecordingModel, ReplayModel
+    from prml2_edge.evaluation.protocol import build_model
+
+    data, model = tiny
+    task = split_tasks(load_dataset(data), "test", WINDOW_S, preroll_s=2.0)[0]
+    spec = ModelSpec("kin", "onnx", str(model), calibration=True)
+    rec = RecordingModel(build_model(spec, task.bias))
+    with_heading = run_window(spec, task, model=rec)
+    no_heading = run_window(replace(spec, filter=(("gnss_heading_min_speed_mps", 1e9),)), task,
+                            model=ReplayModel(rec.records, rec.metadata))
+    assert np.isfinite(no_heading.pose).all()
+    assert not np.array_equal(no_heading.pose, with_heading.pose)
