@@ -39,7 +39,8 @@ paper's (from the true pose, no GNSS) and the deployment protocol (30 s of GNSS 
 Usage::
 
     .venv/bin/python benchmarks/filter_ablation.py --data data/bench --model export/default/prml2_edge.onnx \\
-        [--splits val test] [--jobs 2] [--max-windows N] [--history-min 20]
+        [--splits val test] [--jobs 2] [--max-windows N] [--history-min 20] [--protocols paper deployment]
+        [--variant "no wheel scale from GNSS:scale_min_speed_mps=1e9"]
     .venv/bin/python benchmarks/render_tables.py
 """
 
@@ -112,6 +113,38 @@ def variants(model: str) -> dict[str, ModelSpec]:
             "+ coarse gyro: metadata inflation": replace(cal, filter=(NO_HOLD, NO_GAIN)),
             HELD: replace(cal, filter=(NO_GAIN,)),
             DEFAULT: cal}
+
+
+PROTOCOLS = {"paper": 0.0, "deployment": DEPLOYMENT_PREROLL_S}
+
+
+def variant_arg(text: str) -> tuple[str, tuple[tuple[str, float], ...]]:
+    """``--variant "LABEL:FIELD=VALUE[,FIELD=VALUE]"``: the runtime's default with numeric LocalizerConfig fields
+    changed, as an extra row (a diagnosis replayed on the same recorded outputs)."""
+    from dataclasses import fields
+
+    from prml2_edge.runtime.localizer import LocalizerConfig
+
+    label, sep, body = text.rpartition(":")
+    known = {f.name for f in fields(LocalizerConfig)}
+    pairs = []
+    for item in body.split(","):
+        name, eq, value = item.partition("=")
+        try:
+            number = float(value)
+        except ValueError:
+            number = None
+        if not sep or not label or not eq or name not in known or number is None:
+            raise argparse.ArgumentTypeError(f"{text!r}: want 'LABEL:FIELD=NUMBER[,FIELD=NUMBER]', each FIELD a "
+                                             "LocalizerConfig field (prml2_edge/runtime/localizer.py)")
+        pairs.append((name, number))
+    return label, tuple(pairs)
+
+
+def extra_variants(model: str, extra: list) -> dict[str, ModelSpec]:
+    """The ``--variant`` rows: the runtime's default (calibration on, gain learned) with their overrides."""
+    cal = ModelSpec("PRML2", "onnx", model, calibration=True)
+    return {label: replace(cal, filter=pairs) for label, pairs in extra}
 
 
 def gain_known(task, gain: float, residual: float):
@@ -215,7 +248,7 @@ def check_replay_is_exact(specs: dict[str, ModelSpec], task) -> float:
 
 def measure(args: argparse.Namespace) -> dict:
     dataset = load_dataset(args.data)
-    specs = variants(args.model)
+    specs = variants(args.model) | extra_variants(args.model, args.variant)
     val = split_tasks(dataset, "val", max_windows=args.max_windows)
     osd_spec = tune_osd(ModelSpec(OSD, "osd"), val, jobs=args.jobs)
     gains = {d.name: float(d.meta["sensor_errors"]["yaw_scale_error"]) for d in dataset.drives
@@ -223,7 +256,7 @@ def measure(args: argparse.Namespace) -> dict:
     doc = {"data": str(args.data), "model": str(args.model), "osd_q_scale": osd_spec.q_scale,
            "history_min": args.history_min, "splits": {}}
     for split in args.splits:
-        for protocol, pre in (("paper", 0.0), ("deployment", DEPLOYMENT_PREROLL_S)):
+        for protocol, pre in ((p, PROTOCOLS[p]) for p in args.protocols):
             tasks = split_tasks(dataset, split, max_windows=args.max_windows, preroll_s=pre,
                                 history_min=args.history_min)
             if not tasks:
@@ -305,6 +338,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-windows", type=int, default=None, help="at most N windows per drive segment")
     p.add_argument("--history-min", type=float, default=HISTORY_MINUTES,
                    help="minutes of the car's earlier drives behind its calibration file's gyro gain (0: none)")
+    p.add_argument("--variant", action="append", default=[], type=variant_arg, metavar="LABEL:FIELD=VALUE,...",
+                   help="an extra row: the default with these LocalizerConfig fields changed (repeatable)")
+    p.add_argument("--protocols", nargs="+", choices=tuple(PROTOCOLS), default=list(PROTOCOLS),
+                   help="which protocols to run (default both)")
     p.add_argument("--out", default=str(OUT), help=f"result JSON (default {OUT.relative_to(HERE.parent)})")
     args = p.parse_args(argv)
     t0 = time.time()
