@@ -116,6 +116,23 @@ def variants(model: str) -> dict[str, ModelSpec]:
 
 
 PROTOCOLS = {"paper": 0.0, "deployment": DEPLOYMENT_PREROLL_S}
+SNOW_VAL = "snow_val"
+SNOW_VAL_SEED = 100_000  # added to each snow drive's seed: new roads, the same car, family, mu and length
+
+
+class SnowVal:
+    """A low-mu validation split: the dataset's snow drives (its manifest) simulated again with other seeds, so
+    that a choice for snow is made without the snow test drives. Only ``split_tasks``' one method."""
+
+    def __init__(self, manifest: dict) -> None:
+        from prml2_edge.data.simulate import simulate_drive
+
+        snow = [d for d in manifest["drives"] if d.get("role") == "snow"]
+        self.drives = [simulate_drive(d["minutes"], d["mu"], int(d["seed"]) + SNOW_VAL_SEED, d["family"],
+                                      name=f"{d['name']}_val", vehicle=d.get("vehicle", "reference")) for d in snow]
+
+    def segments(self, split: str) -> list[tuple]:
+        return [(d, 0, len(d)) for d in self.drives] if split == SNOW_VAL else []
 
 
 def variant_arg(text: str) -> tuple[str, tuple[tuple[str, float], ...]]:
@@ -253,11 +270,13 @@ def measure(args: argparse.Namespace) -> dict:
     osd_spec = tune_osd(ModelSpec(OSD, "osd"), val, jobs=args.jobs)
     gains = {d.name: float(d.meta["sensor_errors"]["yaw_scale_error"]) for d in dataset.drives
              if "yaw_scale_error" in d.meta.get("sensor_errors", {})}
+    snow_val = SnowVal(dataset.manifest) if SNOW_VAL in args.splits else None
     doc = {"data": str(args.data), "model": str(args.model), "osd_q_scale": osd_spec.q_scale,
            "history_min": args.history_min, "splits": {}}
     for split in args.splits:
         for protocol, pre in ((p, PROTOCOLS[p]) for p in args.protocols):
-            tasks = split_tasks(dataset, split, max_windows=args.max_windows, preroll_s=pre,
+            source = snow_val if split == SNOW_VAL else dataset
+            tasks = split_tasks(source, split, max_windows=args.max_windows, preroll_s=pre,
                                 history_min=args.history_min)
             if not tasks:
                 continue
@@ -333,7 +352,9 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", default=str(HERE.parent / "data" / "bench"))
     p.add_argument("--model", default=str(HERE.parent / "export" / "default" / "prml2_edge.onnx"))
-    p.add_argument("--splits", nargs="+", default=["val", "test"])
+    p.add_argument("--splits", nargs="+", default=["val", "test"],
+                   help=f"val, test, snow, heldout, or {SNOW_VAL} (the snow drives simulated again with other seeds: "
+                        "a low-mu validation split)")
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--max-windows", type=int, default=None, help="at most N windows per drive segment")
     p.add_argument("--history-min", type=float, default=HISTORY_MINUTES,
