@@ -64,8 +64,10 @@ from prml2_edge.evaluation.metrics import coverage, coverage_text, dr_summary, p
 from prml2_edge.evaluation.models import RecordingModel, ReplayModel
 from prml2_edge.evaluation.protocol import (
     DEPLOYMENT_PREROLL_S,
+    InMemorySplits,
     ModelSpec,
     build_model,
+    filter_override,
     run_all,
     run_window,
     split_tasks,
@@ -120,42 +122,28 @@ SNOW_VAL = "snow_val"
 SNOW_VAL_SEED = 100_000  # added to each snow drive's seed: new roads, the same car, family, mu and length
 
 
-class SnowVal:
+def snow_val(manifest: dict) -> InMemorySplits:
     """A low-mu validation split: the dataset's snow drives (its manifest) simulated again with other seeds, so
-    that a choice for snow is made without the snow test drives. Only ``split_tasks``' one method."""
+    that a choice for snow is made without the snow test drives."""
+    from prml2_edge.data.simulate import simulate_drive
 
-    def __init__(self, manifest: dict) -> None:
-        from prml2_edge.data.simulate import simulate_drive
-
-        snow = [d for d in manifest["drives"] if d.get("role") == "snow"]
-        self.drives = [simulate_drive(d["minutes"], d["mu"], int(d["seed"]) + SNOW_VAL_SEED, d["family"],
-                                      name=f"{d['name']}_val", vehicle=d.get("vehicle", "reference")) for d in snow]
-
-    def segments(self, split: str) -> list[tuple]:
-        return [(d, 0, len(d)) for d in self.drives] if split == SNOW_VAL else []
+    snow = [d for d in manifest["drives"] if d.get("role") == "snow"]
+    return InMemorySplits({SNOW_VAL: [simulate_drive(d["minutes"], d["mu"], int(d["seed"]) + SNOW_VAL_SEED,
+                                                     d["family"], name=f"{d['name']}_val",
+                                                     vehicle=d.get("vehicle", "reference")) for d in snow]})
 
 
 def variant_arg(text: str) -> tuple[str, tuple[tuple[str, float], ...]]:
     """``--variant "LABEL:FIELD=VALUE[,FIELD=VALUE]"``: the runtime's default with numeric LocalizerConfig fields
-    changed, as an extra row (a diagnosis replayed on the same recorded outputs)."""
-    from dataclasses import fields
-
-    from prml2_edge.runtime.localizer import LocalizerConfig
-
+    changed (:func:`~prml2_edge.evaluation.protocol.filter_override`), as an extra row (a diagnosis replayed on the
+    same recorded outputs)."""
     label, sep, body = text.rpartition(":")
-    known = {f.name for f in fields(LocalizerConfig)}
-    pairs = []
-    for item in body.split(","):
-        name, eq, value = item.partition("=")
-        try:
-            number = float(value)
-        except ValueError:
-            number = None
-        if not sep or not label or not eq or name not in known or number is None:
-            raise argparse.ArgumentTypeError(f"{text!r}: want 'LABEL:FIELD=NUMBER[,FIELD=NUMBER]', each FIELD a "
-                                             "LocalizerConfig field (prml2_edge/runtime/localizer.py)")
-        pairs.append((name, number))
-    return label, tuple(pairs)
+    if not sep or not label:
+        raise argparse.ArgumentTypeError(f"{text!r}: want 'LABEL:FIELD=NUMBER[,FIELD=NUMBER]'")
+    try:
+        return label, tuple(filter_override(item) for item in body.split(","))
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(f"--variant {label!r}: {e}") from None
 
 
 def extra_variants(model: str, extra: list) -> dict[str, ModelSpec]:
@@ -270,12 +258,12 @@ def measure(args: argparse.Namespace) -> dict:
     osd_spec = tune_osd(ModelSpec(OSD, "osd"), val, jobs=args.jobs)
     gains = {d.name: float(d.meta["sensor_errors"]["yaw_scale_error"]) for d in dataset.drives
              if "yaw_scale_error" in d.meta.get("sensor_errors", {})}
-    snow_val = SnowVal(dataset.manifest) if SNOW_VAL in args.splits else None
+    snow = snow_val(dataset.manifest) if SNOW_VAL in args.splits else None
     doc = {"data": str(args.data), "model": str(args.model), "osd_q_scale": osd_spec.q_scale,
            "history_min": args.history_min, "splits": {}}
     for split in args.splits:
         for protocol, pre in ((p, PROTOCOLS[p]) for p in args.protocols):
-            source = snow_val if split == SNOW_VAL else dataset
+            source = snow if split == SNOW_VAL else dataset
             tasks = split_tasks(source, split, max_windows=args.max_windows, preroll_s=pre,
                                 history_min=args.history_min)
             if not tasks:

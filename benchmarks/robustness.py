@@ -53,7 +53,16 @@ from prml2_edge.bench.machine import machine_info
 from prml2_edge.data.datasets import resolve_recipe
 from prml2_edge.data.simulate import simulate_drive
 from prml2_edge.evaluation.metrics import dr_summary, paired_comparison
-from prml2_edge.evaluation.protocol import OSD_Q_SCALES, ModelSpec, Tuning, run_all, split_tasks, tune_osd
+from prml2_edge.evaluation.protocol import (
+    OSD_Q_SCALES,
+    InMemorySplits,
+    ModelSpec,
+    Tuning,
+    filter_override,
+    run_all,
+    split_tasks,
+    tune_osd,
+)
 from prml2_edge.evaluation.unit_history import HISTORY_MINUTES
 from prml2_edge.progress import Progress
 
@@ -71,16 +80,6 @@ OSD_TUNING = ("tune_osd on the benchmark recipe's fleet validation drives, re-si
 def cases(offset_dps: float) -> dict[str, float]:
     """Case name -> CAN yaw-rate offset [deg/s]."""
     return {"no offset": 0.0, f"{offset_dps:+g} °/s": offset_dps, f"{-offset_dps:+g} °/s": -offset_dps}
-
-
-class _Drives:
-    """The one method of a dataset ``split_tasks`` needs: whole in-memory drives per split."""
-
-    def __init__(self, by_split: dict[str, list]) -> None:
-        self.by_split = by_split
-
-    def segments(self, split: str) -> list[tuple]:
-        return [(d, 0, len(d)) for d in self.by_split.get(split, [])]
 
 
 def recipe_drives(cars: list[str] | None) -> dict[str, list[dict]]:
@@ -149,21 +148,12 @@ def reported_groups(split: str) -> tuple[str, ...]:
     return ("val",) if split == "val" else GROUPS
 
 
-def filter_override(text: str) -> tuple[str, float]:
-    """``FIELD=VALUE`` of ``--filter``: a numeric :class:`LocalizerConfig` field, checked here so a typo is one line."""
-    from dataclasses import fields
-
-    from prml2_edge.runtime.localizer import LocalizerConfig
-
-    name, sep, value = text.partition("=")
-    known = {f.name for f in fields(LocalizerConfig)}
-    if not sep or name not in known:
-        raise argparse.ArgumentTypeError(f"{text!r}: want FIELD=VALUE with FIELD a LocalizerConfig field "
-                                         "(prml2_edge/runtime/localizer.py)")
+def filter_arg(text: str) -> tuple[str, float]:
+    """``--filter FIELD=VALUE`` (:func:`~prml2_edge.evaluation.protocol.filter_override`) for argparse."""
     try:
-        return name, float(value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: the value must be a number") from None
+        return filter_override(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def history_min(args) -> float:
@@ -176,10 +166,10 @@ def build_tasks(specs: dict[str, list[dict]], case_offsets: dict[str, float], ar
     tasks: dict = {}
     groups = reported_groups(args.split)
     for case, off in case_offsets.items():
-        drives = _Drives({g: [resimulate(s, off, args.minutes) for s in specs[g]] for g in groups})
+        drives = InMemorySplits({g: [resimulate(s, off, args.minutes) for s in specs[g]] for g in groups})
         tasks[case] = {g: split_tasks(drives, g, max_windows=args.max_windows, preroll_s=args.preroll_s,
                                       history_min=history_min(args)) for g in groups}
-    val = _Drives({"val": [resimulate(s, 0.0, args.minutes) for s in specs["val"]]})
+    val = InMemorySplits({"val": [resimulate(s, 0.0, args.minutes) for s in specs["val"]]})
     return tasks, split_tasks(val, "val", max_windows=args.max_windows)
 
 
@@ -302,8 +292,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--preroll-s", type=float, default=0.0,
                     help="the deployment protocol: each window after this many seconds of GNSS-aided driving (10 Hz "
                          "fixes, as prml2 evaluate --preroll-s; both methods fuse them); 0: from the true pose")
-    ap.add_argument("--filter", action="append", default=[], type=filter_override, metavar="FIELD=VALUE",
-                    help="with --calibration: a LocalizerConfig field of the model's filter set to a number "
+    ap.add_argument("--filter", action="append", default=[], type=filter_arg, metavar="FIELD=VALUE",
+                    help="a LocalizerConfig field of the model's filter set to a number "
                          "(repeatable; e.g. cal_model_bias_std_radps=0.00175), to compare filter settings on val")
     ap.add_argument("--split", choices=("test", "val"), default="test",
                     help="score the test drives (default), or the fleet's validation drives to choose between models")

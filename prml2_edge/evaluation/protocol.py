@@ -125,6 +125,34 @@ class WindowResult(DeadReckoningErrors):
     z_var: np.ndarray | None = None  # (n, 5) the model's variance for the consumed z (NaN where none)
 
 
+class InMemorySplits:
+    """The one method of a dataset :func:`split_tasks` needs, for drives simulated on the fly: whole drives per
+    split name (a benchmark's re-simulated or extra drives, never written to disk)."""
+
+    def __init__(self, by_split: dict[str, list]) -> None:
+        self.by_split = by_split
+
+    def segments(self, split: str) -> list[tuple]:
+        return [(d, 0, len(d)) for d in self.by_split.get(split, [])]
+
+
+def filter_override(text: str) -> tuple[str, float]:
+    """``FIELD=NUMBER`` as a :attr:`ModelSpec.filter` pair: a numeric :class:`LocalizerConfig` field. A benchmark's
+    command-line parser; ``ValueError`` says in one line what is wrong."""
+    from dataclasses import fields
+
+    from prml2_edge.runtime.localizer import LocalizerConfig
+
+    name, sep, value = text.partition("=")
+    if not sep or name not in {f.name for f in fields(LocalizerConfig)}:
+        raise ValueError(f"{text!r}: want FIELD=NUMBER with FIELD a LocalizerConfig field "
+                         "(prml2_edge/runtime/localizer.py)")
+    try:
+        return name, float(value)
+    except ValueError:
+        raise ValueError(f"{text!r}: the value must be a number") from None
+
+
 def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: int = schema.WINDOW_LEN,
                 max_windows: int | None = None, preroll_s: float = 0.0,
                 history_min: float = 0.0) -> list[WindowTask]:

@@ -298,3 +298,13 @@ def test_a_filter_override_wins_over_the_protocols_receiver_settings(tiny):
                             model=ReplayModel(rec.records, rec.metadata))
     assert np.isfinite(no_heading.pose).all()
     assert not np.array_equal(no_heading.pose, with_heading.pose)
+
+
+def test_filter_override_parses_a_field_and_says_what_is_wrong_in_one_line():
+    from prml2_edge.evaluation.protocol import filter_override
+
+    assert filter_override("scale_min_speed_mps=1e9") == ("scale_min_speed_mps", 1e9)
+    with pytest.raises(ValueError, match="LocalizerConfig field"):
+        filter_override("no_such_field=1")
+    with pytest.raises(ValueError, match="must be a number"):
+        filter_override("scale_min_speed_mps=fast")
