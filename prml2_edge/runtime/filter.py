@@ -36,12 +36,14 @@ from prml2_edge.runtime.estimator import Estimate
 from prml2_edge.runtime.gnss_check import FixNoise, GnssCheck, GnssCheckConfig
 from prml2_edge.runtime.initial_pose import InitialPose, initial_state
 from prml2_edge.runtime.rows import GnssFix
+from prml2_edge.runtime.slide import SlideMonitor
 from prml2_edge.runtime.yaw_gain import YawGainEstimator
 from prml2_edge.schema import CalState, EkfState
 
 _SIG = schema.SIGNAL_BY_NAME
 _YAW_RATE = _SIG["yaw_rate_radps"].index
 _SPEEDO = _SIG["speedometer_mps"].index
+_LAT_ACCEL = _SIG["lat_accel_mps2"].index
 _REAR = np.array([_SIG["wheel_speed_rl_mps"].index, _SIG["wheel_speed_rr_mps"].index])
 _WHEELS = np.array(schema.WHEEL_SPEED_INDICES)
 _RL, _RR = (int(i) for i in _REAR)
@@ -116,6 +118,7 @@ class PoseFilter:
         self.n_gnss_init_rejected = 0  # first fixes that the next fix or the wheels contradicted
         self.n_standstill_updates = 0
         self.gnss_check = GnssCheck(GnssCheckConfig(enabled=bool(getattr(self.config, "gnss_consistency", True))))
+        self.slide = SlideMonitor(getattr(self.config, "slide_accel_mps2", None), self.dt_s)
         self.fix_noise = FixNoise()
 
     @property
@@ -190,6 +193,7 @@ class PoseFilter:
         else:
             ekf_status = self.ekf.step(z, z_var)
         model_used = ekf_status is StepStatus.SUCCESS
+        self._watch_slide(values, valid)
         pos = self.ekf.x[EkfState.POS]
         self.gnss_check.step(float(pos[0]), float(pos[1]))
         gnss_fused = fix is not None and self._fuse(fix, t_s)
@@ -198,6 +202,23 @@ class PoseFilter:
         if gnss_fused and self.calibrated:
             self._scale_from_gnss(fix, t_s)
         return FilterStep(ekf_status, model_used, gnss_fused, cues, standstill)
+
+    def _watch_slide(self, values: np.ndarray, valid: np.ndarray) -> None:
+        """The slide monitor on this row (:mod:`~prml2_edge.runtime.slide`): while the car slides, the position's
+        uncertainty grows by what the odometry missed, and a new slide starts the GNSS check's baseline again."""
+        x = self.ekf.x  # type: ignore[union-attr]
+        omega = None
+        if valid[_YAW_RATE]:
+            omega = float(values[_YAW_RATE]) * self.yaw_gain_factor
+            if self.calibrated:
+                omega -= float(x[CalState.YAW_RATE_OFFSET.start])
+        grow = self.slide.step(float(values[_LAT_ACCEL]) if valid[_LAT_ACCEL] else None, float(x[_VX]), omega)
+        if self.slide.started:
+            self.gnss_check.restart()
+        if grow > 0.0:
+            p = self.ekf.P  # type: ignore[union-attr]
+            for i in (0, 1):  # the diagonal only: P stays positive semi-definite
+                p[i, i] = (math.sqrt(max(float(p[i, i]), 0.0)) + grow) ** 2
 
     @property
     def gain_learned(self) -> bool:

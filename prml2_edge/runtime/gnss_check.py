@@ -140,6 +140,7 @@ class GnssCheck:
         self.episodes = 0
         self.fixes_refused = 0
         self.first_reason: str | None = None
+        self.restarts = 0  # baselines started again because the odometry broke (a slide)
         self.reset()
 
     def reset(self) -> None:
@@ -156,6 +157,18 @@ class GnssCheck:
         self.fix_std_m = 0.5  # the GNSS noise per axis the tolerance assumes (the filter sets it before every fix)
         self.last_discrepancy_m = 0.0
         self._now = 0.0
+
+    def restart(self) -> None:
+        """The odometry broke (the car slid: :mod:`~prml2_edge.runtime.slide`): what it says over a baseline that
+        holds the break is no evidence against the fixes. The baseline starts again, and a suspicion ends; the check
+        arms again after :attr:`~GnssCheckConfig.arm_fixes` trusted fixes."""
+        self.history.clear()
+        self._suspect_hist.clear()
+        self._trusted = 0
+        self.suspect = False
+        self.reason = ""
+        self._agree = 0
+        self.restarts += 1
 
     def step(self, x_m: float, y_m: float) -> None:
         """The filter's position after this step's prediction and measurements, before any GNSS fix: the
@@ -265,4 +278,5 @@ class GnssCheck:
 
     def summary(self) -> dict:
         return {"episodes": self.episodes, "fixes_refused": self.fixes_refused, "suspect_now": self.suspect,
+                "restarts": self.restarts,
                 "first_reason": self.first_reason, "last_discrepancy_m": self.last_discrepancy_m}

@@ -58,6 +58,9 @@ class LocalizerConfig:
     # suspect and not fused (a spoofer walking the position away passes the gate at every fix)
     gnss_consistency: bool = True
     gnss_gate_max_rejects: int = 20
+    # The car sliding (runtime/slide.py): the 0.1 s mean of |a_y - v_x omega_z| above this [m/s^2] widens the
+    # position by the lateral speed nobody measured and restarts the GNSS check's baseline (None: off).
+    slide_accel_mps2: float | None = 3.0
     # GNSS start-up: the first fix becomes the pose only when the next one (within gnss_init_max_gap_s)
     # agrees with it and with the wheel speeds: |distance - mean wheel speed * dt| within
     # gnss_gate_sigma * sqrt(2) * gnss_pos_std_m + gnss_init_speed_tol_mps * dt.
