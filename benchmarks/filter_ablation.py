@@ -90,6 +90,10 @@ OSD_GAIN = "OSD, gyro gain from the unit's earlier drives"
 NO_COARSE = ("coarse_yaw_resolution_radps", float("inf"))  # the coarse-gyro inflation off
 NO_HOLD = ("coarse_model_clamp_sigma", None)  # the coarse-gyro hold off
 NO_GAIN = ("yaw_gain_calibration", False)  # the learned gyro gain off
+NO_SLIDE = ("slide_accel_mps2", None)  # the slide monitor off (runtime/slide.py); every other row has it
+NO_SLIDE_ROW = "the default without the slide monitor"
+NO_LOW_MU = ("low_mu_model_var_scale", 1.0)  # the model's variance not inflated on a low-mu road; every other row is
+NO_LOW_MU_ROW = "the default without the low-μ variance (× 10)"
 GAIN_RESIDUAL = 0.003  # the gain known to 0.3 % (1 sigma)
 BOUNDS = {"bound: OSD, the drive's gyro gain known": (OSD, 0.0),
           "bound: the default, the drive's gyro gain known": (HELD, 0.0),
@@ -114,7 +118,9 @@ def variants(model: str) -> dict[str, ModelSpec]:
             "+ fast part inflated 5e4": replace(cal, filter=(NO_COARSE, NO_GAIN)),
             "+ coarse gyro: metadata inflation": replace(cal, filter=(NO_HOLD, NO_GAIN)),
             HELD: replace(cal, filter=(NO_GAIN,)),
-            DEFAULT: cal}
+            DEFAULT: cal,
+            NO_SLIDE_ROW: replace(cal, filter=(NO_SLIDE,)),
+            NO_LOW_MU_ROW: replace(cal, filter=(NO_LOW_MU,))}
 
 
 PROTOCOLS = {"paper": 0.0, "deployment": DEPLOYMENT_PREROLL_S}

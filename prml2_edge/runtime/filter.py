@@ -93,6 +93,9 @@ class PoseFilter:
         # the CAN yaw rate's gain: evidence over drives (the calibration file), so not reset with the EKF
         self.yaw_gain = YawGainEstimator(math.radians(config.gnss_heading_std_deg))
         self._gain_on = self.calibrated and bool(config.yaw_gain_calibration)
+        # on a low-friction road (config.mu <= schema.LOW_MU_THRESHOLD) the model's variance times this
+        low_mu = float(getattr(config, "mu", 1.0)) <= schema.LOW_MU_THRESHOLD
+        self._low_mu_scale = float(getattr(config, "low_mu_model_var_scale", 1.0)) if low_mu else 1.0
         self._row_yaw: float | None = None  # this row's raw CAN yaw rate, for the gain
         self._row: tuple[np.ndarray, np.ndarray] | None = None  # this row's values and validity (its speed)
         self.reset()
@@ -177,6 +180,8 @@ class PoseFilter:
         if self.calibrated and z_var is not None and infl != 1.0:
             z_var = z_var.copy()
             z_var[schema.Z.OMEGA_Z] *= infl
+        if z_var is not None and self._low_mu_scale != 1.0:
+            z_var = z_var * self._low_mu_scale
         z, z_var = (None, None) if skip_model else (est.z, z_var)
         if coarse and self.calibrated and z is not None and self.config.coarse_model_clamp_sigma is not None \
                 and valid[_YAW_RATE] and (substituted is None or not substituted[_YAW_RATE]):

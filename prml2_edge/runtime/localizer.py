@@ -40,6 +40,9 @@ class LocalizerConfig:
     stride: int = DEFAULT_STRIDE  # a new window every `stride` 50 Hz steps (config.py says how it was chosen)
     async_inference: bool = False  # the model on a worker thread: no step waits for it (runtime/async_estimator.py)
     mu: float = 1.0  # road friction for the physics guard (<= 0.5: low-mu limits)
+    # On such a low-mu road the model's whole variance times this: it was trained on dry roads only, so on snow the
+    # raw cues carry more. Chosen on the snow_val split (1, 2, 4, 10, 30; docs/evaluation.md, issue 26).
+    low_mu_model_var_scale: float = 10.0
     # Outputs of a window whose rows had an invalid signal in more than this fraction are not used:
     # a dropout of d rows costs the model until at most fraction * L of them are left in the window.
     max_invalid_fraction: float = 0.2

@@ -215,3 +215,20 @@ def test_standstill_holds_the_pose_and_reveals_the_offset_of_a_fine_yaw_sensor(m
     assert np.hypot(*traj.x[-1, :2]) < 0.01 and abs(traj.x[-1, EkfState.YAW.start]) < np.radians(0.05)
     offset = np.degrees(traj.cal[-1, 0])
     assert abs(offset - 0.3) < 0.05
+
+
+def test_on_a_low_mu_road_the_raw_cues_carry_more_than_the_model(tmp_path, drive):
+    """The model was trained on dry roads: on snow (``mu`` <= 0.5) its variance is inflated
+    (``low_mu_model_var_scale``), so a model that reads 1 m/s too fast moves the filter's v_x less off the wheels."""
+    biased = OnnxModel(make_kinematic_model(tmp_path / "fast.onnx", bias=[1.0, 0, 0, 0, 0]))
+    n, start = L + 250, L - 1
+    vx_err = {}
+    for mu in (1.0, 0.3):
+        loc = StreamingLocalizer(biased, LocalizerConfig(mu=mu))
+        traj = loc.run_arrays(drive.onboard[:n], gt_state(drive, start), start_index=start)
+        vx_err[mu] = float(np.mean(traj.x[start + 50:, EkfState.VEL.start] - drive.z_gt[start + 50:n, schema.Z.V_X]))
+    assert 0.0 < vx_err[0.3] < 0.5 * vx_err[1.0]
+    off = StreamingLocalizer(biased, LocalizerConfig(mu=0.3, low_mu_model_var_scale=1.0))
+    traj = off.run_arrays(drive.onboard[:n], gt_state(drive, start), start_index=start)
+    assert float(np.mean(traj.x[start + 50:, EkfState.VEL.start] - drive.z_gt[start + 50:n, schema.Z.V_X])) \
+        == pytest.approx(vx_err[1.0], rel=0.2)
