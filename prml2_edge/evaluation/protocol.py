@@ -265,7 +265,10 @@ def _localizer_config(spec: ModelSpec, task: WindowTask, stride: int):
 
     # the spec's overrides win over the protocol's receiver settings (an ablation may switch the heading fixes off)
     kwargs = dict(gnss_pos_std_m=GNSS_POS_STD_M, gnss_heading_std_deg=GNSS_HEADING_STD_DEG,
-                  gnss_heading_min_speed_mps=GNSS_HEADING_MIN_SPEED_MPS) | dict(spec.filter)
+                  gnss_heading_min_speed_mps=GNSS_HEADING_MIN_SPEED_MPS)
+    if spec.kind == "osd":  # the low-mu inflation is for a model trained on dry roads; OSD's noise was tuned as it is
+        kwargs["low_mu_model_var_scale"] = 1.0
+    kwargs |= dict(spec.filter)
     return LocalizerConfig(stride=stride, mu=task.mu, fuse_gnss=bool(task.preroll), calibration=spec.calibration,
                            **kwargs)
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -308,3 +309,15 @@ def test_filter_override_parses_a_field_and_says_what_is_wrong_in_one_line():
         filter_override("no_such_field=1")
     with pytest.raises(ValueError, match="must be a number"):
         filter_override("scale_min_speed_mps=fast")
+
+
+def test_the_low_mu_inflation_is_for_the_learned_model_not_the_osd_baseline():
+    """On snow the runtime inflates the model's variance (it was trained on dry roads); OSD's noise was tuned on
+    validation as it is, so the evaluation runs it without the inflation (an override still wins)."""
+    from prml2_edge.evaluation.protocol import _localizer_config
+
+    task = SimpleNamespace(mu=0.3, preroll=0)
+    assert _localizer_config(ModelSpec("OSD", "osd"), task, 1).low_mu_model_var_scale == 1.0
+    assert _localizer_config(ModelSpec("m", "onnx", "m.onnx"), task, 1).low_mu_model_var_scale == 10.0
+    spec = ModelSpec("OSD", "osd", filter=(("low_mu_model_var_scale", 3.0),))
+    assert _localizer_config(spec, task, 1).low_mu_model_var_scale == 3.0
