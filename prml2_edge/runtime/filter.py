@@ -12,8 +12,12 @@ Per 50 Hz step, in this order:
    heading follows the calibrated yaw rate and within them the model;
 4. standstill (every valid wheel speed 0 and the speedometer 0 for ``standstill_hold_s``): a
    zero-velocity / zero-rotation update, which with the yaw-rate cue reveals its offset without GNSS;
-5. GNSS fixes: position, and heading while moving, behind an innovation gate; a fused heading is also evidence
+5. the slide monitor (:mod:`prml2_edge.runtime.slide`): while the lateral acceleration and v_x times the yaw rate
+   disagree (a skid, a spin), the position's uncertainty grows by what the odometry missed;
+6. GNSS fixes: position, and heading while moving, behind an innovation gate; a fused heading is also evidence
    on the CAN yaw rate's gain (:mod:`prml2_edge.runtime.yaw_gain`), which divides the yaw-rate cue.
+
+On a low-friction road (``config.mu`` <= 0.5) the model's variance is multiplied by ``low_mu_model_var_scale``.
 
 The filter starts from a given pose, or from a GNSS fix, never before a wheel speed or the
 speedometer is valid (the velocity is initialised from the wheels, not from nothing). A GNSS start
