@@ -102,6 +102,8 @@ class PoseFilter:
         self._low_mu_scale = float(getattr(config, "low_mu_model_var_scale", 1.0)) if low_mu else 1.0
         self._row_yaw: float | None = None  # this row's raw CAN yaw rate, for the gain
         self._row: tuple[np.ndarray, np.ndarray] | None = None  # this row's values and validity (its speed)
+        # slides over the whole run (runtime/slide.py): kept across restarts, so the summary counts every one
+        self.slide = SlideMonitor(getattr(config, "slide_accel_mps2", None), self.dt_s)
         self.reset()
 
     def reset(self) -> None:
@@ -125,7 +127,7 @@ class PoseFilter:
         self.n_gnss_init_rejected = 0  # first fixes that the next fix or the wheels contradicted
         self.n_standstill_updates = 0
         self.gnss_check = GnssCheck(GnssCheckConfig(enabled=bool(getattr(self.config, "gnss_consistency", True))))
-        self.slide = SlideMonitor(getattr(self.config, "slide_accel_mps2", None), self.dt_s)
+        self.slide.reset()
         self.fix_noise = FixNoise()
 
     @property
@@ -521,7 +523,7 @@ class PoseFilter:
                "gnss_suspect": self.gnss_check.summary(),
                "gnss_std_m": {"configured": self.config.gnss_pos_std_m, "measured": self.fix_noise.std_m,
                               "used": self.gnss_std_m if self.fix_noise.std_m is not None else None},
-               "ekf_resets": self.ekf.n_resets if self.ekf is not None else 0}
+               "ekf_resets": self.ekf.n_resets if self.ekf is not None else 0, "slides": self.slide.episodes}
         cal = self.calibration()
         if cal is not None:
             est, cov = cal

@@ -84,8 +84,9 @@ def test_after_a_slide_the_fixes_pull_the_pose_back(model_path, monitor):
     summary = loc.filter.summary()
     if monitor:
         assert err[after:].max() < 1.5
-        assert loc.filter.slide.episodes == 1 and summary["gnss_suspect"]["restarts"] == 1
+        assert summary["slides"] == 1 and summary["gnss_suspect"]["restarts"] == 1
         assert summary["gnss_suspect"]["fixes_refused"] == 0
     else:  # the failure the monitor fixes: the gate, then the GNSS check, refuse the genuine fixes for seconds
+        assert summary["slides"] == 0
         assert err[after:int(25.0 / DT)].min() > 5.0
         assert summary["gnss_suspect"]["fixes_refused"] > 50
