@@ -94,6 +94,8 @@ NO_SLIDE = ("slide_accel_mps2", None)  # the slide monitor off (runtime/slide.py
 NO_SLIDE_ROW = "the default without the slide monitor"
 NO_LOW_MU = ("low_mu_model_var_scale", 1.0)  # the model's variance not inflated on a low-mu road; every other row is
 NO_LOW_MU_ROW = "the default without the low-μ variance (× 10)"
+NO_SLIP = ("low_mu_slip_gain", 0.0)  # no along-track slip uncertainty on a low-mu road
+NO_SLIP_ROW = "the default without the low-μ slip uncertainty"
 GAIN_RESIDUAL = 0.003  # the gain known to 0.3 % (1 sigma)
 BOUNDS = {"bound: OSD, the drive's gyro gain known": (OSD, 0.0),
           "bound: the default, the drive's gyro gain known": (HELD, 0.0),
@@ -120,7 +122,8 @@ def variants(model: str) -> dict[str, ModelSpec]:
             HELD: replace(cal, filter=(NO_GAIN,)),
             DEFAULT: cal,
             NO_SLIDE_ROW: replace(cal, filter=(NO_SLIDE,)),
-            NO_LOW_MU_ROW: replace(cal, filter=(NO_LOW_MU,))}
+            NO_LOW_MU_ROW: replace(cal, filter=(NO_LOW_MU,)),
+            NO_SLIP_ROW: replace(cal, filter=(NO_SLIP,))}
 
 
 PROTOCOLS = {"paper": 0.0, "deployment": DEPLOYMENT_PREROLL_S}

@@ -17,7 +17,8 @@ Per 50 Hz step, in this order:
 6. GNSS fixes: position, and heading while moving, behind an innovation gate; a fused heading is also evidence
    on the CAN yaw rate's gain (:mod:`prml2_edge.runtime.yaw_gain`), which divides the yaw-rate cue.
 
-On a low-friction road (``config.mu`` <= 0.5) the model's variance is multiplied by ``low_mu_model_var_scale``.
+On a low-friction road (``config.mu`` <= 0.5) the model's variance is multiplied by ``low_mu_model_var_scale``, and
+the position's along-track uncertainty grows with the traction asked of the road (``low_mu_slip_gain``).
 
 The filter starts from a given pose, or from a GNSS fix, never before a wheel speed or the
 speedometer is valid (the velocity is initialised from the wheels, not from nothing). A GNSS start
@@ -53,6 +54,7 @@ _WHEELS = np.array(schema.WHEEL_SPEED_INDICES)
 _RL, _RR = (int(i) for i in _REAR)
 _WHEEL_LIST = [int(i) for i in _WHEELS]
 _YAW, _OMEGA, _VX = EkfState.YAW.start, EkfState.OMEGA_Z.start, EkfState.VEL.start
+_AX = EkfState.ACC.start
 _RESOLUTION_WINDOW = 200  # steps between distinct yaw-rate readings kept for the resolution estimate
 
 
@@ -100,6 +102,8 @@ class PoseFilter:
         # on a low-friction road (config.mu <= schema.LOW_MU_THRESHOLD) the model's variance times this
         low_mu = float(getattr(config, "mu", 1.0)) <= schema.LOW_MU_THRESHOLD
         self._low_mu_scale = float(getattr(config, "low_mu_model_var_scale", 1.0)) if low_mu else 1.0
+        # ... and the position's along-track sigma grows by this times the speed times |a_x| / (mu g) per second
+        self._slip_k = float(getattr(config, "low_mu_slip_gain", 0.0)) / (config.mu * schema.G_MPS2) if low_mu else 0.0
         self._row_yaw: float | None = None  # this row's raw CAN yaw rate, for the gain
         self._row: tuple[np.ndarray, np.ndarray] | None = None  # this row's values and validity (its speed)
         # slides over the whole run (runtime/slide.py): kept across restarts, so the summary counts every one
@@ -230,6 +234,26 @@ class PoseFilter:
             p = self.ekf.P  # type: ignore[union-attr]
             for i in (0, 1):  # the diagonal only: P stays positive semi-definite
                 p[i, i] = (math.sqrt(max(float(p[i, i]), 0.0)) + grow) ** 2
+        if self._slip_k:
+            self._widen_along_track()
+
+    def _widen_along_track(self) -> None:
+        """On a low-friction road the tyres slip with the traction asked of them, and the model and the wheels read
+        the same too-high (or too-low) speed: their fusion cannot show it. The position's standard deviation along
+        the track grows by ``low_mu_slip_gain * |v_x| * |a_x| / (mu g) * dt`` per step (a slip ratio that
+        grows with the share of the friction used), the way a correlated speed error moves the position."""
+        x = self.ekf.x  # type: ignore[union-attr]
+        grow = self._slip_k * abs(float(x[_VX])) * abs(float(x[_AX])) * self.dt_s
+        if grow <= 0.0:
+            return
+        c, s = math.cos(float(x[_YAW])), math.sin(float(x[_YAW]))
+        p = self.ekf.P  # type: ignore[union-attr]
+        along = math.sqrt(max(c * c * p[0, 0] + 2.0 * c * s * p[0, 1] + s * s * p[1, 1], 0.0))
+        add = (along + grow) ** 2 - along * along  # a rank-one term along the heading: P stays positive semi-definite
+        p[0, 0] += add * c * c
+        p[0, 1] += add * c * s
+        p[1, 0] += add * c * s
+        p[1, 1] += add * s * s
 
     @property
     def gain_learned(self) -> bool:
