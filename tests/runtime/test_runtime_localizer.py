@@ -232,3 +232,23 @@ def test_on_a_low_mu_road_the_raw_cues_carry_more_than_the_model(tmp_path, drive
     traj = off.run_arrays(drive.onboard[:n], gt_state(drive, start), start_index=start)
     assert float(np.mean(traj.x[start + 50:, EkfState.VEL.start] - drive.z_gt[start + 50:n, schema.Z.V_X])) \
         == pytest.approx(vx_err[1.0], rel=0.2)
+
+
+def test_on_a_low_mu_road_the_position_widens_along_the_track_with_traction(model_path, drive):
+    """Tyres on snow slip with the traction asked of them, and the model and the wheels read the same speed: the
+    position's along-track sigma grows with |v_x| |a_x| / (mu g) (``low_mu_slip_gain``); on a dry road nothing."""
+    n, start = L + 500, L - 1
+
+    def run(**kw):
+        loc = StreamingLocalizer(OnnxModel(model_path), LocalizerConfig(**kw))
+        return loc.run_arrays(drive.onboard[:n], gt_state(drive, start), start_index=start)
+
+    def along_var(traj):
+        c, s = np.cos(traj.pose[-1, 2]), np.sin(traj.pose[-1, 2])
+        return float(np.array([c, s]) @ traj.pos_cov[-1] @ np.array([c, s]))
+
+    snow, snow_off = run(mu=0.3), run(mu=0.3, low_mu_slip_gain=0.0)
+    assert np.array_equal(snow.pose, snow_off.pose, equal_nan=True)  # the uncertainty only, not the estimate
+    assert along_var(snow) > 1.5 * along_var(snow_off)
+    dry, dry_off = run(mu=1.0), run(mu=1.0, low_mu_slip_gain=0.0)
+    assert np.array_equal(dry.pos_cov, dry_off.pos_cov, equal_nan=True)
