@@ -209,6 +209,8 @@ class PoseFilter:
             ekf_status = self.ekf.step(z, z_var)
         model_used = ekf_status is StepStatus.SUCCESS
         self._watch_slide(values, valid)
+        if self._slip_k:
+            self._widen_along_track()
         pos = self.ekf.x[EkfState.POS]
         self.gnss_check.step(float(pos[0]), float(pos[1]))
         gnss_fused = fix is not None and self._fuse(fix, t_s)
@@ -234,8 +236,6 @@ class PoseFilter:
             p = self.ekf.P  # type: ignore[union-attr]
             for i in (0, 1):  # the diagonal only: P stays positive semi-definite
                 p[i, i] = (math.sqrt(max(float(p[i, i]), 0.0)) + grow) ** 2
-        if self._slip_k:
-            self._widen_along_track()
 
     def _widen_along_track(self) -> None:
         """On a low-friction road the tyres slip with the traction asked of them, and the model and the wheels read

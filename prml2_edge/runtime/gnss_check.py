@@ -146,12 +146,7 @@ class GnssCheck:
     def reset(self) -> None:
         self._last: tuple[float, float] | None = None
         self.odo = [0.0, 0.0]  # the filter's own displacement, GNSS corrections left out [m]
-        self.history: collections.deque[_Entry] = collections.deque()
-        self.suspect = False
-        self.reason = ""
-        self._agree = 0
-        self._suspect_hist: collections.deque[_Entry] = collections.deque()
-        self._trusted = 0  # fixes trusted since the start (the check arms after arm_fixes)
+        self._new_baseline()
         self._psi_std0 = 0.0  # the filter's heading uncertainty when the suspicion began [rad]
         self._rate_std0 = 0.0  # ... and its yaw-rate offset uncertainty [rad/s]
         self.fix_std_m = 0.5  # the GNSS noise per axis the tolerance assumes (the filter sets it before every fix)
@@ -162,13 +157,17 @@ class GnssCheck:
         """The odometry broke (the car slid: :mod:`~prml2_edge.runtime.slide`): what it says over a baseline that
         holds the break is no evidence against the fixes. The baseline starts again, and a suspicion ends; the check
         arms again after :attr:`~GnssCheckConfig.arm_fixes` trusted fixes."""
-        self.history.clear()
-        self._suspect_hist.clear()
-        self._trusted = 0
+        self._new_baseline()
+        self.restarts += 1
+
+    def _new_baseline(self) -> None:
+        """No baseline, no suspicion, not armed (the odometry track itself goes on)."""
+        self.history: collections.deque[_Entry] = collections.deque()
         self.suspect = False
         self.reason = ""
         self._agree = 0
-        self.restarts += 1
+        self._suspect_hist: collections.deque[_Entry] = collections.deque()
+        self._trusted = 0  # fixes trusted since the start (the check arms after arm_fixes)
 
     def step(self, x_m: float, y_m: float) -> None:
         """The filter's position after this step's prediction and measurements, before any GNSS fix: the
