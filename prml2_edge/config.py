@@ -38,6 +38,8 @@ class SignalsConfig:
     dbc: str | None = None  # DBC path; None: the map's own DBC
     mu: float = 1.0  # road friction for the physics guard (<= 0.5: low-mu limits)
     stale_periods: float = 3.0  # a signal is invalid after this many of its periods without a frame
+    driven_axle: str = "front"  # "front" (FWD), "rear" (RWD) or "all" (AWD): the wheel cue is the other axle's
+    steering_ratio: float = 15.0  # steering wheel angle / road wheel angle (front-wheel steer corrections)
 
 
 @dataclass(frozen=True)
@@ -105,6 +107,7 @@ class RuntimeConfig:
 
 
 _INITIAL_POSE_SOURCES = ("gnss", "config", "file")
+DRIVEN_AXLES = ("front", "rear", "all")
 
 
 def _type_name(tp: object) -> str:
@@ -171,6 +174,11 @@ def validate(cfg: RuntimeConfig) -> RuntimeConfig:
         raise ConfigError("[model] sha256 must be 64 hex digits (sha256sum model.onnx)")
     if not cfg.signals.mu > 0:
         raise ConfigError(f"[signals] mu must be > 0, got {cfg.signals.mu}")
+    if cfg.signals.driven_axle not in DRIVEN_AXLES:
+        raise ConfigError(f"[signals] driven_axle must be one of {', '.join(DRIVEN_AXLES)} (FWD, RWD, AWD), "
+                          f"got {cfg.signals.driven_axle!r}")
+    if not cfg.signals.steering_ratio > 0:
+        raise ConfigError(f"[signals] steering_ratio must be > 0, got {cfg.signals.steering_ratio}")
     if cfg.signals.stale_periods <= 0:
         raise ConfigError(f"[signals] stale_periods must be > 0, got {cfg.signals.stale_periods}")
     if cfg.initial_pose.source not in _INITIAL_POSE_SOURCES:

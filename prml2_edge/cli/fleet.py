@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from prml2_edge.config import DEFAULT_STRIDE
+from prml2_edge.config import DEFAULT_STRIDE, DRIVEN_AXLES
 
 HELP = "Replay many recorded CAN logs on a Dask cluster (local by default), one task per log, resumable."
 NEEDS: tuple[tuple[str, str], ...] = (("distributed", "fleet"),)
@@ -24,6 +24,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--dbc", metavar="PATH", help="DBC file (default: the one the map names)")
     g.add_argument("--model", metavar="PATH", help="ONNX model (default: the shipped model)")
     g.add_argument("--mu", type=float, default=1.0, help="road friction for the physics guard (default 1.0)")
+    g.add_argument("--driven-axle", choices=DRIVEN_AXLES, default="front",
+                   help="the cars' driven axle: front (FWD, default), rear (RWD) or all (AWD)")
+    g.add_argument("--steering-ratio", type=float, default=15.0,
+                   help="steering wheel angle over road wheel angle (default 15)")
     g.add_argument("--stride", type=int, default=DEFAULT_STRIDE,
                    help=f"a new model window every N 50 Hz steps (default {DEFAULT_STRIDE})")
     g.add_argument("--stale-periods", type=float, default=3.0, help="signal staleness in periods (default 3)")
@@ -44,6 +48,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     if args.workers is not None and args.address:
         raise ConfigError("--workers sizes the local cluster; an existing cluster (--address) has its own")
+    if not args.steering_ratio > 0:
+        raise ConfigError(f"--steering-ratio must be > 0, got {args.steering_ratio}")
     if args.stride < 1:
         raise ConfigError(f"--stride must be >= 1, got {args.stride}")
     model = str(Path(args.model).resolve()) if args.model else None
@@ -51,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"{args.model}: model file not found")
     build = {"map": args.map, "dbc": str(Path(args.dbc).resolve()) if args.dbc else None, "model": model,
              "threads": 1, "stride": args.stride, "mu": args.mu, "stale_periods": args.stale_periods,
+             "driven_axle": args.driven_axle, "steering_ratio": args.steering_ratio,
              "calibration": not args.no_calibration,
              "initial_pose": InitialPose.parse(args.initial_pose) if args.initial_pose else None}
     # Set-up errors (map, DBC, model) once here, in one line, rather than once per log on the cluster.

@@ -46,7 +46,9 @@ def config_from_args(args: argparse.Namespace) -> RuntimeConfig:
     return with_overrides(
         cfg,
         can=can_section,
-        signals={"map": args.map, "dbc": args.dbc, "mu": args.mu, "stale_periods": args.stale_periods},
+        signals={"map": args.map, "dbc": args.dbc, "mu": args.mu, "stale_periods": args.stale_periods,
+                 "driven_axle": getattr(args, "driven_axle", None),
+                 "steering_ratio": getattr(args, "steering_ratio", None)},
         model={"path": args.model, "threads": args.threads, "stride": args.stride, "providers": providers,
                "spinning": True if getattr(args, "spinning", False) else None,
                "async_inference": True if getattr(args, "async_inference", False) else None},
@@ -121,7 +123,8 @@ def build_pipeline(cfg: RuntimeConfig, extra_sinks: list | None = None, external
         return Pipeline.build(map=cfg.signals.map, dbc=cfg.signals.dbc, model=model_path, threads=cfg.model.threads,
                               spinning=cfg.model.spinning, providers=cfg.model.providers, stride=cfg.model.stride,
                               async_inference=cfg.model.async_inference, mu=cfg.signals.mu,
-                              stale_periods=cfg.signals.stale_periods, initial_pose=initial_pose, sinks=sinks,
+                              stale_periods=cfg.signals.stale_periods, driven_axle=cfg.signals.driven_axle,
+                              steering_ratio=cfg.signals.steering_ratio, initial_pose=initial_pose, sinks=sinks,
                               trt_cache_dir=cfg.model.trt_cache_dir, trt_fp16=cfg.model.trt_fp16,
                               calibration=cfg.calibration.enabled, calibration_file=cfg.calibration.file,
                               external_gnss=external_gnss)

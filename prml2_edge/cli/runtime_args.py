@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from prml2_edge.config import DEFAULT_STRIDE
+from prml2_edge.config import DEFAULT_STRIDE, DRIVEN_AXLES
 
 
 def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
@@ -16,6 +16,11 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--dbc", metavar="PATH", help="DBC file (default: the one the map names)")
     g.add_argument("--model", metavar="PATH", help="ONNX model (default: the shipped model)")
     g.add_argument("--mu", type=float, help="road friction for the physics guard (default 1.0; <= 0.5 low-mu)")
+    g.add_argument("--driven-axle", choices=DRIVEN_AXLES,
+                   help="the car's driven axle: front (FWD, default), rear (RWD) or all (AWD); the wheel-speed cue "
+                        "is taken from the other axle, whose wheels do not spin up with the traction")
+    g.add_argument("--steering-ratio", type=float,
+                   help="steering wheel angle over road wheel angle (default 15; front-wheel steer corrections)")
     g.add_argument("--threads", type=int, help="ONNX Runtime intra-op threads (default 1)")
     g.add_argument("--spinning", action="store_true",
                    help="with --threads >= 2: ONNX Runtime worker threads busy-wait between parallel sections "

@@ -95,6 +95,9 @@ class WindowTask:
     # the evidence on the CAN yaw rate's gain the car's calibration file holds from its earlier drives:
     # (information, information-weighted sum), evaluation.unit_history; None: no history
     yaw_gain: tuple[float, float] | None = None
+    # the drive's car when it is one of the simulated fleet ("": not known); its driven axle and steering ratio go to
+    # the runtime's filter, as a user's config would give them (Car.filter_settings)
+    vehicle: str = ""
 
     @property
     def key(self) -> str:
@@ -189,7 +192,7 @@ def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: 
                                     drive.onboard[start - pre - hist : start + steps],
                                     drive.t_s[sl], drive.z_gt[sl], drive.pose_gt[sl], mu, bias, pre,
                                     drive.pose_gt[ps] if pre else None, drive.z_gt[ps] if pre else None,
-                                    evidence))
+                                    evidence, str(drive.meta.get("vehicle", ""))))
     return tasks
 
 
@@ -260,6 +263,13 @@ def process_noise(model, q_scale: float = 1.0) -> np.ndarray:
     return q * float(q_scale)
 
 
+def car_settings(vehicle: str) -> dict:
+    """The runtime settings a user gives for ``vehicle`` when it is a car of the simulated fleet ({} otherwise)."""
+    from prml2_edge.data.simulate.fleet import CARS
+
+    return CARS[vehicle].filter_settings() if vehicle in CARS else {}
+
+
 def _localizer_config(spec: ModelSpec, task: WindowTask, stride: int):
     from prml2_edge.runtime.localizer import LocalizerConfig
 
@@ -268,6 +278,7 @@ def _localizer_config(spec: ModelSpec, task: WindowTask, stride: int):
                   gnss_heading_min_speed_mps=GNSS_HEADING_MIN_SPEED_MPS)
     if spec.kind == "osd":  # the low-mu inflation is for a model trained on dry roads; OSD's noise was tuned as it is
         kwargs["low_mu_model_var_scale"] = 1.0
+    kwargs |= car_settings(task.vehicle)
     kwargs |= dict(spec.filter)
     return LocalizerConfig(stride=stride, mu=task.mu, fuse_gnss=bool(task.preroll), calibration=spec.calibration,
                            **kwargs)

@@ -6,8 +6,9 @@ Per 50 Hz step, in this order:
 2. the model's z (from :mod:`prml2_edge.runtime.estimator`) as a pseudo-measurement, when there is one;
 3. with ``calibration`` on, the raw cues as measurements of their own, through the calibration
    states (:class:`prml2_edge.schema.CalState`): the CAN yaw rate (``omega_z + offset``) and the
-   rear-axle wheel speed (``(1 + scale) v_x``, only above ``cue_min_speed_mps``: ABS sensors read 0
-   near standstill). The model's learned variance against the cues' fixed noise decides the
+   non-driven axle's wheel speed (``(1 + scale) v_x``, only above ``cue_min_speed_mps``: ABS sensors read 0
+   near standstill): the rear axle, or the front one of a rear-driven car (``driven_axle``), whose driven wheels
+   spin up with the traction on a slippery road. The model's learned variance against the cues' fixed noise decides the
    weighting step by step; the model's omega_z carries a bias state of its own, so over seconds the
    heading follows the calibrated yaw rate and within them the model;
 4. standstill (every valid wheel speed 0 and the speedometer 0 for ``standstill_hold_s``): a
@@ -30,6 +31,7 @@ the next fix.
 from __future__ import annotations
 
 import collections
+import functools
 import math
 from dataclasses import dataclass
 
@@ -52,6 +54,8 @@ _LAT_ACCEL = _SIG["lat_accel_mps2"].index
 _REAR = np.array([_SIG["wheel_speed_rl_mps"].index, _SIG["wheel_speed_rr_mps"].index])
 _WHEELS = np.array(schema.WHEEL_SPEED_INDICES)
 _RL, _RR = (int(i) for i in _REAR)
+_FL, _FR = _SIG["wheel_speed_fl_mps"].index, _SIG["wheel_speed_fr_mps"].index
+_STEER = _SIG["steering_wheel_angle_rad"].index
 _WHEEL_LIST = [int(i) for i in _WHEELS]
 _YAW, _OMEGA, _VX = EkfState.YAW.start, EkfState.OMEGA_Z.start, EkfState.VEL.start
 _AX = EkfState.ACC.start
@@ -64,6 +68,15 @@ def _rear_speed(values: np.ndarray, valid: np.ndarray) -> float | None:
     if not (valid[_RL] and valid[_RR]):
         return None
     return (float(values[_RL]) + float(values[_RR])) / 2
+
+
+def _front_speed(values: np.ndarray, valid: np.ndarray, steering_ratio: float) -> float | None:
+    """Mean front-axle wheel speed as v_x [m/s], None unless both wheels and the steering angle are valid. The
+    steered wheels roll along their own heading, v_x / cos(delta) on a kinematic single track, so the mean is
+    multiplied by cos(delta), delta = steering wheel angle / ``steering_ratio``."""
+    if not (valid[_FL] and valid[_FR] and valid[_STEER]):
+        return None
+    return (float(values[_FL]) + float(values[_FR])) / 2 * math.cos(float(values[_STEER]) / steering_ratio)
 
 
 def yaw_cue_var(config, resolution_radps: float) -> float:
@@ -108,6 +121,11 @@ class PoseFilter:
         self._row: tuple[np.ndarray, np.ndarray] | None = None  # this row's values and validity (its speed)
         # slides over the whole run (runtime/slide.py): kept across restarts, so the summary counts every one
         self.slide = SlideMonitor(getattr(config, "slide_accel_mps2", None), self.dt_s)
+        # the wheel cue's speed (values, valid) -> m/s or None: the axle that does not drive (an AWD car's rear: all
+        # four slip, the rear ones less under traction); LocalizerConfig checks driven_axle
+        self._axle_speed = _rear_speed
+        if getattr(config, "driven_axle", "front") == "rear":
+            self._axle_speed = functools.partial(_front_speed, steering_ratio=float(config.steering_ratio))
         self.reset()
 
     def reset(self) -> None:
@@ -276,7 +294,7 @@ class PoseFilter:
         """A fused GNSS heading as gain evidence, when the gyro is fine enough to learn from (quantisation without
         dither leaves an error that follows the turn) and the row had a yaw rate and a rear-axle speed."""
         fine = self._resolution_measured and self.yaw_resolution_radps < self.config.yaw_gain_max_resolution_radps
-        speed = _rear_speed(*self._row) if fine and self._row_yaw is not None and self._row is not None else None
+        speed = self._axle_speed(*self._row) if fine and self._row_yaw is not None and self._row is not None else None
         if speed is not None and speed >= self.config.gnss_heading_min_speed_mps:
             self.yaw_gain.heading(t_s, psi, self._row_yaw, speed)
 
@@ -378,8 +396,8 @@ class PoseFilter:
 
     def _cue_values(self, values: np.ndarray, valid: np.ndarray, substituted: np.ndarray | None = None,
                     substitute_std: np.ndarray | None = None) -> tuple[float | None, float, float | None, float]:
-        """The raw cues of this row for :meth:`Ekf.step_with_cues`: ``(yaw rate or None, its variance, rear-axle
-        wheel speed or None, its variance)``; tracks the yaw rate's resolution on the way."""
+        """The raw cues of this row for :meth:`Ekf.step_with_cues`: ``(yaw rate or None, its variance, the cue
+        axle's wheel speed or None, its variance)``; tracks the yaw rate's resolution on the way."""
         cfg = self.config
         yaw = float(values[_YAW_RATE]) if valid[_YAW_RATE] else None
         yaw_var = self._yaw_cue_var
@@ -394,16 +412,16 @@ class PoseFilter:
             yaw = float(values[_YAW_RATE])
             yaw_var = yaw_var + float(substitute_std[_YAW_RATE]) ** 2
         wheel = None
-        w = _rear_speed(values, valid)
+        w = self._axle_speed(values, valid)
         if w is not None and w >= cfg.cue_min_speed_mps:
             wheel = w
         return yaw, yaw_var, wheel, cfg.wheel_cue_std_mps ** 2
 
     def _odometry(self, values: np.ndarray, valid: np.ndarray) -> None:
-        """Integrate the rear-axle wheel speed along the filter's heading; a gap or slow driving restarts it."""
+        """Integrate the cue axle's wheel speed along the filter's heading; a gap or slow driving restarts it."""
         if self._odo_anchor is None:
             return
-        w = _rear_speed(values, valid)
+        w = self._axle_speed(values, valid)
         if w is None or not w >= self.config.scale_min_speed_mps:
             self._odo_anchor = None
             return

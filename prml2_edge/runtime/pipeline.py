@@ -146,6 +146,7 @@ class Pipeline:
               model: str | Path | OnnxModel | None = None, threads: int = 1, providers: Sequence[str] = ("cpu",),
               spinning: bool = False,
               stride: int = DEFAULT_STRIDE, async_inference: bool = False, mu: float = 1.0, stale_periods: float = 3.0,
+              driven_axle: str = "front", steering_ratio: float = 15.0,
               initial_pose: InitialPose | None = None, sinks: Sequence = (),
               localizer_config: LocalizerConfig | None = None, trt_cache_dir: str = "~/.cache/prml2/trt",
               trt_fp16: bool = False, calibration: bool = True, calibration_file: str | Path | None = None,
@@ -155,7 +156,9 @@ class Pipeline:
         ``initial_pose`` None means: take it from the first GNSS fix on the bus, which needs a map
         with a ``[gnss]`` table, or ``external_gnss`` (fixes from ``--gnss``, see :meth:`add_gnss_source`).
         ``plausibility`` configures the cross-checks of the signals (:mod:`~prml2_edge.runtime.plausibility`;
-        default on, ``PlausibilityConfig(enabled=False)`` turns them off).
+        default on with the car's ``steering_ratio``, ``PlausibilityConfig(enabled=False)`` turns them off).
+        ``driven_axle`` ("front", "rear" or "all") and ``steering_ratio`` describe the car: the filter's wheel cue
+        comes from the axle that does not drive (:class:`LocalizerConfig`).
         """
         signal_map, db, dbc_path = load_map_and_dbc(resolve_map(map), dbc)
         if initial_pose is None and signal_map.gnss is None and not external_gnss:
@@ -167,7 +170,10 @@ class Pipeline:
                               providers=providers, trt_cache_dir=trt_cache_dir, trt_fp16=trt_fp16,
                               spinning=spinning)
         cfg = localizer_config or LocalizerConfig(stride=stride, async_inference=async_inference, mu=mu,
-                                                  calibration=calibration)
+                                                  calibration=calibration, driven_axle=driven_axle,
+                                                  steering_ratio=steering_ratio)
+        if plausibility is None:
+            plausibility = PlausibilityConfig(steering_ratio=steering_ratio)
         stats = FrameStats()
         latency = LatencyRecorder()
         decoder = FrameDecoder(signal_map, db)

@@ -316,8 +316,25 @@ def test_the_low_mu_inflation_is_for_the_learned_model_not_the_osd_baseline():
     validation as it is, so the evaluation runs it without the inflation (an override still wins)."""
     from prml2_edge.evaluation.protocol import _localizer_config
 
-    task = SimpleNamespace(mu=0.3, preroll=0)
+    task = SimpleNamespace(mu=0.3, preroll=0, vehicle="")
     assert _localizer_config(ModelSpec("OSD", "osd"), task, 1).low_mu_model_var_scale == 1.0
     assert _localizer_config(ModelSpec("m", "onnx", "m.onnx"), task, 1).low_mu_model_var_scale == 10.0
     spec = ModelSpec("OSD", "osd", filter=(("low_mu_model_var_scale", 3.0),))
     assert _localizer_config(spec, task, 1).low_mu_model_var_scale == 3.0
+
+
+def test_a_fleet_cars_drive_runs_with_its_driven_axle_and_steering_ratio():
+    """A user tells the runtime the car's driven axle; the evaluation does the same for the fleet's cars (the RWD
+    sedan's wheel cue from its front axle), a car it does not know keeps the defaults, and an ablation's override
+    wins."""
+    from prml2_edge.data.simulate.fleet import CARS
+    from prml2_edge.evaluation.protocol import _localizer_config
+
+    spec = ModelSpec("m", "onnx", "m.onnx")
+    cfg = _localizer_config(spec, SimpleNamespace(mu=1.0, preroll=0, vehicle="rwd_sedan"), 1)
+    assert (cfg.driven_axle, cfg.steering_ratio) == ("rear", CARS["rwd_sedan"].params.steering_ratio)
+    assert _localizer_config(spec, SimpleNamespace(mu=1.0, preroll=0, vehicle="suv_awd"), 1).driven_axle == "all"
+    assert _localizer_config(spec, SimpleNamespace(mu=1.0, preroll=0, vehicle=""), 1).driven_axle == "front"
+    rear_cue = ModelSpec("m", "onnx", "m.onnx", filter=(("driven_axle", "front"),))
+    assert _localizer_config(rear_cue, SimpleNamespace(mu=1.0, preroll=0, vehicle="rwd_sedan"), 1).driven_axle \
+        == "front"

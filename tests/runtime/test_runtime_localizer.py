@@ -252,3 +252,48 @@ def test_on_a_low_mu_road_the_position_widens_along_the_track_with_traction(mode
     assert along_var(snow) > 1.5 * along_var(snow_off)
     dry, dry_off = run(mu=1.0), run(mu=1.0, low_mu_slip_gain=0.0)
     assert np.array_equal(dry.pos_cov, dry_off.pos_cov, equal_nan=True)
+
+
+def test_a_rear_driven_car_takes_its_wheel_cue_from_the_free_rolling_front_axle(model_path):
+    """On snow a RWD car's rear wheels spin up with the traction and read v_x a few per cent high; its front wheels
+    roll freely. With ``driven_axle="rear"`` the filter's v_x follows the front axle and is closer to the truth
+    while the car accelerates than with the rear axle's cue (``driven_axle="front"``, the FWD default)."""
+    from prml2_edge.data.simulate.fleet import CARS
+
+    car = CARS["rwd_sedan"]
+    snow = simulate_drive(1.0, 0.3, 5, "snow", vehicle="rwd_sedan")
+    start = L - 1
+    traction = snow.z_gt[start:, schema.Z.A_X] > 0.3
+    assert traction.sum() > 200  # the drive accelerates for more than 4 s
+
+    def vx_error(axle: str) -> float:
+        cfg = LocalizerConfig(mu=0.3, driven_axle=axle, steering_ratio=car.params.steering_ratio)
+        traj = StreamingLocalizer(OnnxModel(model_path), cfg).run_arrays(snow.onboard, gt_state(snow, start),
+                                                                         start_index=start)
+        err = traj.x[start:, EkfState.VEL.start] - snow.z_gt[start:, schema.Z.V_X]
+        return float(np.mean(err[traction]))
+
+    front_cue, rear_cue = vx_error("rear"), vx_error("front")
+    assert rear_cue > 0.1  # the slipping rear axle: more than 0.1 m/s high on average
+    assert abs(front_cue) < 0.5 * rear_cue
+
+
+def test_the_front_axle_cue_is_steer_corrected():
+    """Steered front wheels roll along their own heading at v_x / cos(delta) (kinematic single track): the cue is
+    their mean times cos(steering wheel angle / steering ratio); a missing steering angle means no cue."""
+    from prml2_edge.runtime.filter import _front_speed
+
+    sig = schema.SIGNAL_BY_NAME
+    values, valid = np.zeros(schema.NUM_SIGNALS), np.ones(schema.NUM_SIGNALS, dtype=bool)
+    delta = 0.3
+    values[sig["steering_wheel_angle_rad"].index] = 15.0 * delta
+    values[sig["wheel_speed_fl_mps"].index] = 4.9 / np.cos(delta)
+    values[sig["wheel_speed_fr_mps"].index] = 5.1 / np.cos(delta)
+    assert _front_speed(values, valid, 15.0) == pytest.approx(5.0)
+    valid[sig["steering_wheel_angle_rad"].index] = False
+    assert _front_speed(values, valid, 15.0) is None
+
+
+def test_an_unknown_driven_axle_is_refused():
+    with pytest.raises(ValueError, match="driven_axle must be 'front' \\(FWD\\), 'rear' \\(RWD\\) or 'all'"):
+        LocalizerConfig(driven_axle="fwd")

@@ -42,6 +42,12 @@ class Car:
         return {"name": self.name, "description": self.description, "params": asdict(self.params),
                 "sensors": {**asdict(self.sensors), "steps": dict(self.sensors.steps)}}
 
+    def filter_settings(self) -> dict:
+        """What a user tells the runtime about this car (:class:`~prml2_edge.runtime.localizer.LocalizerConfig`
+        fields): its driven axle and steering ratio."""
+        axle = {"fwd": "front", "rwd": "rear", "awd": "all"}[self.params.drivetrain]
+        return {"driven_axle": axle, "steering_ratio": float(self.params.steering_ratio)}
+
 
 def _car(name: str, description: str, mass: float, lf: float, lr: float, track: float, cog: float, ratio: float,
          drivetrain: str = "fwd", stiffness_per_load: tuple[float, float] = (12.0, 18.0),
