@@ -76,12 +76,16 @@ def write_fixes(drive, path: Path, seconds: float, std_m: float, heading_std_deg
 
 
 def replay_cli(log: Path, csv: Path, fixes: Path, calibration: bool, stride: int | None = None,
-               model: str | None = None) -> dict:
-    """``prml2 replay LOG --gnss FIXES --truth CSV`` in this process; its summary JSON."""
+               model: str | None = None, car: str | None = None) -> dict:
+    """``prml2 replay LOG --gnss FIXES --truth CSV`` in this process, with the fleet car's driven axle and steering
+    ratio as its user would give them; its summary JSON."""
     from prml2_edge.cli.main import main as prml2
 
     out = log.with_suffix(".cal.json" if calibration else ".ref.json")
     argv = ["replay", str(log), "--gnss", str(fixes), "--truth", str(csv), "--summary-json", str(out)]
+    if car is not None:
+        settings = CARS[car].filter_settings()
+        argv += ["--driven-axle", settings["driven_axle"], "--steering-ratio", str(settings["steering_ratio"])]
     argv += [] if stride is None else ["--stride", str(stride)]
     argv += [] if model is None else ["--model", model]
     with contextlib.redirect_stdout(io.StringIO()):
@@ -108,8 +112,8 @@ def highway_case(args) -> int:
         write_drive_csv(drive, csv)
         encode_drive_to_log(drive, log)
         n_fixes = write_fixes(drive, fixes, args.gnss_s, args.gnss_std_m, 1.0, seed)
-        on = replay_cli(log, csv, fixes, True, args.stride, args.model)
-        off = replay_cli(log, csv, fixes, False, args.stride, args.model)
+        on = replay_cli(log, csv, fixes, True, args.stride, args.model, car)
+        off = replay_cli(log, csv, fixes, False, args.stride, args.model, car)
         est = on["truth"].get("calibration_at_outage", {}).get("yaw_rate_offset_dps", math.nan)
         rows.append({"car": car, "seed": seed, "fixes": n_fixes, "calibrated": on, "reference": off,
                      "yaw_offset_estimate_dps": est, "yaw_offset_error_dps": est - args.yaw_offset_dps})

@@ -124,6 +124,7 @@ class PoseFilter:
         # the wheel cue's speed (values, valid) -> m/s or None: the axle that does not drive (an AWD car's rear: all
         # four slip, the rear ones less under traction); LocalizerConfig checks driven_axle
         self._axle_speed = _rear_speed
+        self._cue_axle_drives = getattr(config, "driven_axle", "front") == "all"
         if getattr(config, "driven_axle", "front") == "rear":
             self._axle_speed = functools.partial(_front_speed, steering_ratio=float(config.steering_ratio))
         self.reset()
@@ -256,12 +257,14 @@ class PoseFilter:
                 p[i, i] = (math.sqrt(max(float(p[i, i]), 0.0)) + grow) ** 2
 
     def _widen_along_track(self) -> None:
-        """On a low-friction road the tyres slip with the traction asked of them, and the model and the wheels read
-        the same too-high (or too-low) speed: their fusion cannot show it. The position's standard deviation along
-        the track grows by ``low_mu_slip_gain * |v_x| * |a_x| / (mu g) * dt`` per step (a slip ratio that
-        grows with the share of the friction used), the way a correlated speed error moves the position."""
+        """On a low-friction road the cue axle's tyres slip with the force asked of them, and the model and the
+        wheels read the same too-high (or too-low) speed: their fusion cannot show it. The position's standard
+        deviation along the track grows by ``low_mu_slip_gain * |v_x| * a / (mu g) * dt`` per step (a slip ratio
+        that grows with the share of the friction used), the way a correlated speed error moves the position;
+        ``a`` is the braking deceleration, or ``|a_x|`` when the cue axle also drives (AWD)."""
         x = self.ekf.x  # type: ignore[union-attr]
-        grow = self._slip_k * abs(float(x[_VX])) * abs(float(x[_AX])) * self.dt_s
+        ax = float(x[_AX])
+        grow = self._slip_k * abs(float(x[_VX])) * (abs(ax) if self._cue_axle_drives else -ax) * self.dt_s
         if grow <= 0.0:
             return
         c, s = math.cos(float(x[_YAW])), math.sin(float(x[_YAW]))

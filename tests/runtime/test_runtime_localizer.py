@@ -235,9 +235,10 @@ def test_on_a_low_mu_road_the_raw_cues_carry_more_than_the_model(tmp_path, drive
 
 
 def test_on_a_low_mu_road_the_position_widens_along_the_track_with_traction(model_path, drive):
-    """Tyres on snow slip with the traction asked of them, and the model and the wheels read the same speed: the
-    position's along-track sigma grows with |v_x| |a_x| / (mu g) (``low_mu_slip_gain``); on a dry road nothing."""
-    n, start = L + 500, L - 1
+    """Tyres on snow slip with the force asked of them, and the model and the wheels read the same speed: the
+    position's along-track sigma grows with |v_x| a / (mu g) (``low_mu_slip_gain``), a the braking deceleration
+    for a wheel cue on a free-rolling axle, |a_x| when that axle drives too (AWD); on a dry road nothing."""
+    n, start = len(drive.t_s), L - 1  # the drive accelerates in its first 10 s and brakes after
 
     def run(**kw):
         loc = StreamingLocalizer(OnnxModel(model_path), LocalizerConfig(**kw))
@@ -247,9 +248,12 @@ def test_on_a_low_mu_road_the_position_widens_along_the_track_with_traction(mode
         c, s = np.cos(traj.pose[-1, 2]), np.sin(traj.pose[-1, 2])
         return float(np.array([c, s]) @ traj.pos_cov[-1] @ np.array([c, s]))
 
-    snow, snow_off = run(mu=0.3), run(mu=0.3, low_mu_slip_gain=0.0)
-    assert np.array_equal(snow.pose, snow_off.pose, equal_nan=True)  # the uncertainty only, not the estimate
-    assert along_var(snow) > 1.5 * along_var(snow_off)
+    snow, snow_awd, snow_off = run(mu=0.3), run(mu=0.3, driven_axle="all"), run(mu=0.3, low_mu_slip_gain=0.0)
+    # the uncertainty only, not the estimate (an AWD car's cue is the rear axle too)
+    assert np.array_equal(snow.pose, snow_off.pose, equal_nan=True)
+    assert np.array_equal(snow_awd.pose, snow_off.pose, equal_nan=True)
+    grow_fwd, grow_awd = along_var(snow) - along_var(snow_off), along_var(snow_awd) - along_var(snow_off)
+    assert grow_awd > 2.0 * grow_fwd and grow_fwd > 0.1  # [m^2]: braking only, against braking and traction
     dry, dry_off = run(mu=1.0), run(mu=1.0, low_mu_slip_gain=0.0)
     assert np.array_equal(dry.pos_cov, dry_off.pos_cov, equal_nan=True)
 
