@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -186,7 +187,13 @@ def run(args: argparse.Namespace) -> int:
                   f"dataset {dataset.fingerprint[:12]}")
 
         def on_epoch(r: dict) -> None:
-            pos = f" pos {r['val_pos']:.3f}" if r["stage"] == "finetune" else ""
+            finite = math.isfinite(r["val_pos"])
+            pos = f" pos {r['val_pos']:.3f}" if r["stage"] in ("finetune", "initial") and finite else ""
+            if r["stage"] == "initial":  # a transfer's starting model on the new car's validation windows
+                print(f"epoch   0 initial  (--init) | val nll {r['val_nll']:.2f}{pos} | v_x "
+                      f"{r['val_rmse_v_x_mps']:.3f} m/s, w_z {r['val_rmse_omega_z_radps']:.4f} rad/s"
+                      f"{' *best' if r['best'] else ''}")
+                return
             print(f"epoch {r['epoch']:>3} {r['stage']:<8} train {r['train_loss']:.2f} | val nll {r['val_nll']:.2f}"
                   f"{pos} | v_x {r['val_rmse_v_x_mps']:.3f} m/s, w_z {r['val_rmse_omega_z_radps']:.4f} rad/s"
                   f" | {r['train_windows_per_s']:.0f} win/s, {r['epoch_time_s']:.0f} s{' *best' if r['best'] else ''}")
@@ -212,6 +219,12 @@ def run(args: argparse.Namespace) -> int:
                       f"{dr['rmse_mean_m']:.2f} ± {dr['rmse_std_m']:.2f} m, ME {dr['me_mean_m']:.2f} ± "
                       f"{dr['me_std_m']:.2f} m; guard fired on {100 * val.guard_fire_rate:.2f} % of predictions")
         summary["total_wall_s"] = time.monotonic() - t0
+        last = result.history[-1]["stage"] if result.history else None
+        kept = init is not None and not any(r["best"] for r in result.history if r["stage"] == last)
+        summary["kept_initial_model"] = kept
+        if info.is_main and kept:
+            print("no epoch of the last stage beat the initial model on the validation windows: best.pt is the "
+                  "model it started from (--init)")
         if info.is_main:
             Path(args.out, "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=True, default=str))
             print(f"done in {summary['total_wall_s'] / 60:.1f} min: {result.best_path} (best), "

@@ -66,6 +66,7 @@ log = logging.getLogger(__name__)
 
 PRETRAIN = "pretrain"
 FINETUNE = "finetune"
+INITIAL = "initial"  # a transfer run's epoch 0: the model it started from, validated on the new car
 EKF_DTYPE = torch.float64  # the filter runs in float64 (100 recursive steps, Joseph form)
 
 
@@ -324,8 +325,15 @@ def fit(
     if info.is_main:
         _start_metrics(out_dir, metrics_path, best_path, history if resume is not None else None)
     loop = _make_loop(model, optimizer, counters, model_cfg, train_cfg, info, len(data.train))
+    floor = next((h["val_objective"] for h in history if h.get("stage") == INITIAL), math.inf)
+    if init is not None and resume is None:
+        floor = _validate_initial(loop, data, history, preset, out_dir)
+        if info.is_main and on_epoch is not None:
+            on_epoch(history[-1])
+        if _stage_of(0, train_cfg) == _stage_of(train_cfg.epochs - 1, train_cfg):
+            best_score = floor
     _run_epochs(loop, data, range(start_epoch, train_cfg.epochs), best_score, history, preset=preset,
-                out_dir=out_dir, progress=progress, on_epoch=on_epoch)
+                out_dir=out_dir, progress=progress, on_epoch=on_epoch, floor=floor)
     if info.is_main and not best_path.is_file() and last_path.is_file():
         _keep_last_as_best(last_path, best_path)
     if info.enabled:
@@ -347,17 +355,20 @@ def _initial_model(data: TrainData, model_cfg: ModelConfig, init: Prml2Model | N
 
 
 def _run_epochs(loop: _Loop, data: TrainData, epochs: range, best_score: float, history: list[dict], *,
-                preset: str, out_dir: Path, progress: bool | None, on_epoch: Callable[[dict], None] | None) -> None:
+                preset: str, out_dir: Path, progress: bool | None, on_epoch: Callable[[dict], None] | None,
+                floor: float = math.inf) -> None:
     """Train and validate each of ``epochs``; append its record to ``history``; rank 0 saves and reports it.
 
-    ``best_score`` is the best validation objective so far in the current stage (a new stage starts its own).
+    ``best_score`` is the best validation objective so far in the current stage (a new stage starts its own; the
+    last stage starts from ``floor``, a transfer's initial model, so that only a better epoch replaces it).
     """
     train_cfg = loop.cfg
+    last_stage = _stage_of(train_cfg.epochs - 1, train_cfg)
     lr = math.nan
     for epoch in epochs:
         stage = _stage_of(epoch, train_cfg)
         if epoch > 0 and stage != _stage_of(epoch - 1, train_cfg):
-            best_score = math.inf  # a new stage: its own best
+            best_score = floor if stage == last_stage else math.inf  # a new stage: its own best
         t_epoch = time.monotonic()
         sums, lr = _train_epoch(loop, data, epoch, stage, lr, progress)
         record = _epoch_record(loop, data, epoch, stage, lr, sums, t_epoch)
@@ -366,10 +377,30 @@ def _run_epochs(loop: _Loop, data: TrainData, epochs: range, best_score: float, 
             best_score = record["val_objective"]
         record["best"] = improved
         history.append(record)
-        if loop.info.is_main:
-            _save_epoch(loop, record, history, improved, best_score, preset, data.fingerprint, out_dir, epoch, stage)
+        if loop.info.is_main:  # a transfer's best.pt is its initial model until the last stage beats it
+            keep = improved and (stage == last_stage or not math.isfinite(floor))
+            _save_epoch(loop, record, history, keep, best_score, preset, data.fingerprint, out_dir, epoch, stage)
             if on_epoch is not None:
                 on_epoch(record)
+
+
+def _validate_initial(loop: _Loop, data: TrainData, history: list[dict], preset: str, out_dir: Path) -> float:
+    """A transfer run's epoch 0: the model it starts from, validated on the new car's windows with the last stage's
+    objective, logged and (rank 0) saved as ``best.pt``. Returns that objective: an epoch replaces the initial model
+    only when it is better, so 8 minutes of a car cannot hand back a model worse on its validation drive."""
+    cfg, info = loop.cfg, loop.info
+    last_stage = _stage_of(cfg.epochs - 1, cfg)
+    val = evaluate_windows(loop.model, loop.guard, data.val, batch_size=max(loop.per_rank_batch, 64),
+                           with_position=loop.filt is not None, filt=loop.filt, beta=cfg.beta, info=info,
+                           nll_reduction=cfg.nll_reduction)
+    record: dict[str, Any] = {"epoch": 0, "stage": INITIAL, **val,
+                              "val_objective": val["val_nll"] + (val["val_pos"] if last_stage == FINETUNE else 0.0)}
+    score = record["val_objective"] if math.isfinite(record["val_objective"]) else math.inf
+    record["best"] = math.isfinite(score)
+    history.append(record)
+    if info.is_main:
+        _save_epoch(loop, record, history, record["best"], score, preset, data.fingerprint, out_dir, -1, INITIAL)
+    return score
 
 
 def _keep_last_as_best(last_path: Path, best_path: Path) -> None:

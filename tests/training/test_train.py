@@ -261,6 +261,23 @@ def test_init_starts_from_the_given_model_and_keeps_its_statistics(toy_data, tmp
             progress=False, init=init)
 
 
+def test_a_transfer_that_only_gets_worse_on_the_new_cars_validation_hands_back_the_initial_model(toy_data, tmp_path):
+    """A transfer run validates the model it starts from as epoch 0 (logged, saved as best.pt); an epoch replaces it
+    only when it is better on the new car's validation windows, so a wrecking learning rate returns it unchanged."""
+    first = fit(toy_data, tmp_path / "first", preset="tiny", model_cfg=PRESET.model, train_cfg=CFG, progress=False)
+    init, _ = load_model(first.best_path)
+    start = {k: v.clone() for k, v in init.state_dict().items()}
+    result = fit(toy_data, tmp_path / "ft", preset="tiny", model_cfg=PRESET.model, train_cfg=replace(CFG, lr=3.0),
+                 progress=False, init=init)
+    records = [json.loads(line) for line in result.metrics_path.read_text().splitlines()]
+    assert [(r["epoch"], r["stage"]) for r in records] == [(0, "initial"), (1, "pretrain"), (2, "finetune")]
+    assert records[0]["best"] and not records[2]["best"]
+    assert records[2]["val_objective"] > records[0]["val_objective"]
+    best = torch.load(result.best_path, weights_only=True)
+    assert best["epoch"] == 0 and all(torch.allclose(best["model"][k], start[k]) for k in start)
+    assert not all(torch.allclose(result.model.state_dict()[k], start[k]) for k in start)  # it did train
+
+
 def test_pretrain_physics_terms_penalise_inconsistent_and_jerky_predictions():
     from prml2_edge.training.losses import physics_consistency_loss
 
