@@ -151,10 +151,8 @@ def run(args: argparse.Namespace) -> int:
 
     from prml2_edge.data.datasets import load_dataset
     from prml2_edge.training import distributed as ddp
-    from prml2_edge.training.checkpoint import load_model
     from prml2_edge.training.presets import get_preset, with_overrides
     from prml2_edge.training.trainer import fit, prepare_data
-    from prml2_edge.training.validate import evaluate_split
 
     t0 = time.monotonic()
     preset = get_preset(args.preset)
@@ -186,20 +184,8 @@ def run(args: argparse.Namespace) -> int:
                   f"{len(data.val)} validation windows, {info.world_size} process(es), "
                   f"dataset {dataset.fingerprint[:12]}")
 
-        def on_epoch(r: dict) -> None:
-            finite = math.isfinite(r["val_pos"])
-            pos = f" pos {r['val_pos']:.3f}" if r["stage"] in ("finetune", "initial") and finite else ""
-            if r["stage"] == "initial":  # a transfer's starting model on the new car's validation windows
-                print(f"epoch   0 initial  (--init) | val nll {r['val_nll']:.2f}{pos} | v_x "
-                      f"{r['val_rmse_v_x_mps']:.3f} m/s, w_z {r['val_rmse_omega_z_radps']:.4f} rad/s"
-                      f"{' *best' if r['best'] else ''}")
-                return
-            print(f"epoch {r['epoch']:>3} {r['stage']:<8} train {r['train_loss']:.2f} | val nll {r['val_nll']:.2f}"
-                  f"{pos} | v_x {r['val_rmse_v_x_mps']:.3f} m/s, w_z {r['val_rmse_omega_z_radps']:.4f} rad/s"
-                  f" | {r['train_windows_per_s']:.0f} win/s, {r['epoch_time_s']:.0f} s{' *best' if r['best'] else ''}")
-
         result = fit(data, args.out, preset=preset.name, model_cfg=model_cfg, train_cfg=train_cfg,
-                     resume=args.resume, info=info, on_epoch=on_epoch, init=init)
+                     resume=args.resume, info=info, on_epoch=_print_epoch, init=init)
         summary: dict = {
             "preset": preset.name, "data": str(args.data), "dataset_fingerprint": dataset.fingerprint,
             "train_config": asdict(train_cfg), "model_config": asdict(model_cfg), "init": args.init,
@@ -207,21 +193,9 @@ def run(args: argparse.Namespace) -> int:
             "world_size": info.world_size, "train_wall_s": result.wall_s, "counters": result.counters,
         }
         if info.is_main and not args.no_eval:
-            model, _ = load_model(result.best_path)
-            print(f"final validation of {result.best_path} (streaming stride {args.eval_stride}) ...")
-            val = evaluate_split(model, dataset, "val", stride=args.eval_stride)
-            summary["val"] = val.to_dict()
-            dr = val.dr_summary()
-            print("val z RMSE   " + "  ".join(f"{k} {v:.4f}" for k, v in val.z_rmse.items()))
-            print("OSD baseline " + "  ".join(f"{k} {v:.4f}" for k, v in val.osd_z_rmse.items()))
-            if dr.get("n_windows"):
-                print(f"val 60 s dead reckoning over {dr['n_windows']} windows: position RMSE "
-                      f"{dr['rmse_mean_m']:.2f} ± {dr['rmse_std_m']:.2f} m, ME {dr['me_mean_m']:.2f} ± "
-                      f"{dr['me_std_m']:.2f} m; guard fired on {100 * val.guard_fire_rate:.2f} % of predictions")
+            summary["val"] = _final_validation(result.best_path, dataset, args.eval_stride)
         summary["total_wall_s"] = time.monotonic() - t0
-        last = result.history[-1]["stage"] if result.history else None
-        kept = init is not None and not any(r["best"] for r in result.history if r["stage"] == last)
-        summary["kept_initial_model"] = kept
+        summary["kept_initial_model"] = kept = init is not None and _kept_initial(result.history)
         if info.is_main and kept:
             print("no epoch of the last stage beat the initial model on the validation windows: best.pt is the "
                   "model it started from (--init)")
@@ -234,3 +208,41 @@ def run(args: argparse.Namespace) -> int:
     finally:
         ddp.shutdown(info)
     return 0
+
+
+def _print_epoch(r: dict) -> None:
+    """One line per epoch (``fit``'s ``on_epoch``); a transfer's epoch 0 is its initial model, validated."""
+    finite = math.isfinite(r["val_pos"])
+    pos = f" pos {r['val_pos']:.3f}" if r["stage"] in ("finetune", "initial") and finite else ""
+    best = " *best" if r["best"] else ""
+    if r["stage"] == "initial":  # a transfer's starting model on the new car's validation windows
+        print(f"epoch   0 initial  (--init) | val nll {r['val_nll']:.2f}{pos} | v_x {r['val_rmse_v_x_mps']:.3f} "
+              f"m/s, w_z {r['val_rmse_omega_z_radps']:.4f} rad/s{best}")
+        return
+    print(f"epoch {r['epoch']:>3} {r['stage']:<8} train {r['train_loss']:.2f} | val nll {r['val_nll']:.2f}"
+          f"{pos} | v_x {r['val_rmse_v_x_mps']:.3f} m/s, w_z {r['val_rmse_omega_z_radps']:.4f} rad/s"
+          f" | {r['train_windows_per_s']:.0f} win/s, {r['epoch_time_s']:.0f} s{best}")
+
+
+def _kept_initial(history: list[dict]) -> bool:
+    """A transfer run in which no epoch of its last stage beat the initial model (best.pt is that model)."""
+    last = history[-1]["stage"] if history else None
+    return not any(r["best"] for r in history if r["stage"] == last)
+
+
+def _final_validation(best_path, dataset, eval_stride: int) -> dict:
+    """Stream ``best_path`` over the validation split, print z RMSE and 60 s dead reckoning; the metrics."""
+    from prml2_edge.training.checkpoint import load_model
+    from prml2_edge.training.validate import evaluate_split
+
+    model, _ = load_model(best_path)
+    print(f"final validation of {best_path} (streaming stride {eval_stride}) ...")
+    val = evaluate_split(model, dataset, "val", stride=eval_stride)
+    dr = val.dr_summary()
+    print("val z RMSE   " + "  ".join(f"{k} {v:.4f}" for k, v in val.z_rmse.items()))
+    print("OSD baseline " + "  ".join(f"{k} {v:.4f}" for k, v in val.osd_z_rmse.items()))
+    if dr.get("n_windows"):
+        print(f"val 60 s dead reckoning over {dr['n_windows']} windows: position RMSE "
+              f"{dr['rmse_mean_m']:.2f} ± {dr['rmse_std_m']:.2f} m, ME {dr['me_mean_m']:.2f} ± "
+              f"{dr['me_std_m']:.2f} m; guard fired on {100 * val.guard_fire_rate:.2f} % of predictions")
+    return val.to_dict()

@@ -74,6 +74,12 @@ def test_recipe_through_train_export_and_evaluate(recipe, tmp_path, capsys):
         assert len(error_model["var_inflation"]) == 5 and min(error_model["var_inflation"]) >= 1.0
     else:
         assert "error model: not measured" in capsys.readouterr().out
+    # a transfer from the exported model: its epoch 0 is the model itself, validated, and the summary says whether
+    # an epoch beat it
+    assert main(["train", "--data", str(data), "--out", str(tmp_path / "ft"), "--init", str(onnx), "--epochs", "2",
+                 "--max-train-windows", "8", "--no-eval"]) == 0
+    assert "epoch   0 initial  (--init) | val nll" in capsys.readouterr().out
+    assert isinstance(json.loads((tmp_path / "ft" / "summary.json").read_text())["kept_initial_model"], bool)
     rep = tmp_path / "rep"
     args, model = SETTINGS[recipe]
     assert main(["evaluate", "--data", str(data), *(a.format(onnx=onnx) for a in args), "--out", str(rep),
