@@ -19,7 +19,8 @@ Per 50 Hz step, in this order:
    on the CAN yaw rate's gain (:mod:`prml2_edge.runtime.yaw_gain`), which divides the yaw-rate cue.
 
 On a low-friction road (``config.mu`` <= 0.5) the model's variance is multiplied by ``low_mu_model_var_scale``, and
-the position's along-track uncertainty grows with the traction asked of the road (``low_mu_slip_gain``).
+the position's along-track uncertainty grows with the braking asked of the road (``low_mu_slip_gain``; with any
+traction when the cue axle also drives).
 
 The filter starts from a given pose, or from a GNSS fix, never before a wheel speed or the
 speedometer is valid (the velocity is initialised from the wheels, not from nothing). A GNSS start
