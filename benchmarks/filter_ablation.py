@@ -131,18 +131,25 @@ def variants(model: str) -> dict[str, ModelSpec]:
 
 PROTOCOLS = {"paper": 0.0, "deployment": DEPLOYMENT_PREROLL_S}
 SNOW_VAL = "snow_val"
-SNOW_VAL_SEED = 100_000  # added to each snow drive's seed: new roads, the same car, family, mu and length
+DRY_VAL = "dry_val"
+RESIM_SEED = 100_000  # added to each drive's seed: new roads, the same car, family, mu and length
+# the re-simulated validation splits: which drives of the manifest they take (role, split; the held-out car's not)
+RESIMULATED = {SNOW_VAL: ("snow", None), DRY_VAL: ("dry", "test")}
 
 
-def snow_val(manifest: dict) -> InMemorySplits:
-    """A low-mu validation split: the dataset's snow drives (its manifest) simulated again with other seeds, so
-    that a choice for snow is made without the snow test drives."""
+def resimulated(manifest: dict, name: str) -> InMemorySplits:
+    """A validation split simulated again from the manifest with other seeds, so that a choice is made without the
+    test drives: ``snow_val`` (the snow drives) or ``dry_val`` (the fleet's dry test drives: standstill-calibrated,
+    like test, unlike val's real-car drives)."""
     from prml2_edge.data.simulate import simulate_drive
 
-    snow = [d for d in manifest["drives"] if d.get("role") == "snow"]
-    return InMemorySplits({SNOW_VAL: [simulate_drive(d["minutes"], d["mu"], int(d["seed"]) + SNOW_VAL_SEED,
-                                                     d["family"], name=f"{d['name']}_val",
-                                                     vehicle=d.get("vehicle", "reference")) for d in snow]})
+    role, split = RESIMULATED[name]
+    heldout = set(manifest.get("recipe", {}).get("heldout", [])) if isinstance(manifest.get("recipe"), dict) else set()
+    picked = [d for d in manifest["drives"] if d.get("role") == role and (split is None or d.get("split") == split)
+              and d.get("vehicle", "reference") not in heldout]
+    return InMemorySplits({name: [simulate_drive(d["minutes"], d["mu"], int(d["seed"]) + RESIM_SEED, d["family"],
+                                                 name=f"{d['name']}_val", vehicle=d.get("vehicle", "reference"))
+                                  for d in picked]})
 
 
 def variant_arg(text: str) -> tuple[str, tuple[tuple[str, float], ...]]:
@@ -270,12 +277,12 @@ def measure(args: argparse.Namespace) -> dict:
     osd_spec = tune_osd(ModelSpec(OSD, "osd"), val, jobs=args.jobs)
     gains = {d.name: float(d.meta["sensor_errors"]["yaw_scale_error"]) for d in dataset.drives
              if "yaw_scale_error" in d.meta.get("sensor_errors", {})}
-    snow = snow_val(dataset.manifest) if SNOW_VAL in args.splits else None
+    extra = {n: resimulated(dataset.manifest, n) for n in RESIMULATED if n in args.splits}
     doc = {"data": str(args.data), "model": str(args.model), "osd_q_scale": osd_spec.q_scale,
            "history_min": args.history_min, "splits": {}}
     for split in args.splits:
         for protocol, pre in ((p, PROTOCOLS[p]) for p in args.protocols):
-            source = snow if split == SNOW_VAL else dataset
+            source = extra.get(split, dataset)
             tasks = split_tasks(source, split, max_windows=args.max_windows, preroll_s=pre,
                                 history_min=args.history_min)
             if not tasks:
@@ -356,8 +363,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data", default=str(HERE.parent / "data" / "bench"))
     p.add_argument("--model", default=str(HERE.parent / "export" / "default" / "prml2_edge.onnx"))
     p.add_argument("--splits", nargs="+", default=["val", "test"],
-                   help=f"val, test, snow, heldout, or {SNOW_VAL} (the snow drives simulated again with other seeds: "
-                        "a low-mu validation split)")
+                   help=f"val, test, snow, heldout, {SNOW_VAL} or {DRY_VAL} (the snow drives, or the fleet's dry test "
+                        "drives, simulated again with other seeds: validation splits like snow and test)")
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--max-windows", type=int, default=None, help="at most N windows per drive segment")
     p.add_argument("--history-min", type=float, default=HISTORY_MINUTES,
