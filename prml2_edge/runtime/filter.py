@@ -122,8 +122,8 @@ class PoseFilter:
         self._row: tuple[np.ndarray, np.ndarray] | None = None  # this row's values and validity (its speed)
         # slides over the whole run (runtime/slide.py): kept across restarts, so the summary counts every one
         self.slide = SlideMonitor(getattr(config, "slide_accel_mps2", None), self.dt_s)
-        # the wheel cue's speed (values, valid) -> m/s or None: the axle that does not drive (an AWD car's rear: all
-        # four slip, the rear ones less under traction); LocalizerConfig checks driven_axle
+        # the wheel cue's speed (values, valid) -> m/s or None: the axle that does not drive (an AWD car keeps the
+        # rear: all four slip); LocalizerConfig checks driven_axle
         self._axle_speed = _rear_speed
         self._cue_axle_drives = getattr(config, "driven_axle", "front") == "all"
         if getattr(config, "driven_axle", "front") == "rear":
@@ -296,7 +296,7 @@ class PoseFilter:
 
     def _gain_heading(self, t_s: float, psi: float) -> None:
         """A fused GNSS heading as gain evidence, when the gyro is fine enough to learn from (quantisation without
-        dither leaves an error that follows the turn) and the row had a yaw rate and a rear-axle speed."""
+        dither leaves an error that follows the turn) and the row had a yaw rate and a cue-axle speed."""
         fine = self._resolution_measured and self.yaw_resolution_radps < self.config.yaw_gain_max_resolution_radps
         speed = self._axle_speed(*self._row) if fine and self._row_yaw is not None and self._row is not None else None
         if speed is not None and speed >= self.config.gnss_heading_min_speed_mps:
