@@ -124,9 +124,10 @@ class PoseFilter:
         self.slide = SlideMonitor(getattr(config, "slide_accel_mps2", None), self.dt_s)
         # the wheel cue's speed (values, valid) -> m/s or None: the axle that does not drive (an AWD car keeps the
         # rear: all four slip); LocalizerConfig checks driven_axle
+        axle = getattr(config, "driven_axle", "front")
         self._axle_speed = _rear_speed
-        self._cue_axle_drives = getattr(config, "driven_axle", "front") == "all"
-        if getattr(config, "driven_axle", "front") == "rear":
+        self._cue_axle_drives = axle == "all"
+        if axle == "rear":
             self._axle_speed = functools.partial(_front_speed, steering_ratio=float(config.steering_ratio))
         self.reset()
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from prml2_edge import schema
-from prml2_edge.config import DEFAULT_STRIDE
+from prml2_edge.config import DEFAULT_STRIDE, DRIVEN_AXLES
 from prml2_edge.ekf.numpy_ekf import CalibrationNoise, CalibrationStd, StepStatus, default_process_noise, wrap_angle
 from prml2_edge.runtime.async_estimator import AsyncEstimator
 from prml2_edge.runtime.estimator import Estimate, Estimator, Model
@@ -143,7 +143,7 @@ class LocalizerConfig:
             raise ValueError(f"mu must be > 0, got {self.mu}")
         if not 0.0 <= self.max_invalid_fraction <= 1.0:
             raise ValueError(f"max_invalid_fraction must be in [0, 1], got {self.max_invalid_fraction}")
-        if self.driven_axle not in ("front", "rear", "all"):
+        if self.driven_axle not in DRIVEN_AXLES:
             raise ValueError(f"driven_axle must be 'front' (FWD), 'rear' (RWD) or 'all' (AWD), "
                              f"got {self.driven_axle!r}")
         if not self.steering_ratio > 0:

@@ -389,12 +389,9 @@ def _validate_initial(loop: _Loop, data: TrainData, history: list[dict], preset:
     objective, logged and (rank 0) saved as ``best.pt``. Returns that objective: an epoch replaces the initial model
     only when it is better, so 8 minutes of a car cannot hand back a model worse on its validation drive."""
     cfg, info = loop.cfg, loop.info
-    last_stage = _stage_of(cfg.epochs - 1, cfg)
-    val = evaluate_windows(loop.model, loop.guard, data.val, batch_size=max(loop.per_rank_batch, 64),
-                           with_position=loop.filt is not None, filt=loop.filt, beta=cfg.beta, info=info,
-                           nll_reduction=cfg.nll_reduction)
+    val = _validate(loop, data)
     record: dict[str, Any] = {"epoch": 0, "stage": INITIAL, **val,
-                              "val_objective": val["val_nll"] + (val["val_pos"] if last_stage == FINETUNE else 0.0)}
+                              "val_objective": _objective(val, _stage_of(cfg.epochs - 1, cfg))}
     score = record["val_objective"] if math.isfinite(record["val_objective"]) else math.inf
     record["best"] = math.isfinite(score)
     history.append(record)
@@ -584,12 +581,10 @@ def _optimizer_step(loop: _Loop, loss: torch.Tensor) -> bool:
 def _epoch_record(loop: _Loop, data: TrainData, epoch: int, stage: str, lr: float, sums: torch.Tensor,
                   t_epoch: float) -> dict[str, Any]:
     """Validate and build the epoch's log record (``best`` is added by the caller)."""
-    cfg, guard, info = loop.cfg, loop.guard, loop.info
+    guard, info = loop.guard, loop.info
     train_fire = ddp.all_reduce_sum(torch.tensor([guard.n_fired, guard.n_predictions], dtype=torch.float64), info)
     train_time = time.monotonic() - t_epoch
-    val = evaluate_windows(loop.model, guard, data.val, batch_size=max(loop.per_rank_batch, 64),
-                           with_position=loop.filt is not None, filt=loop.filt, beta=cfg.beta, info=info,
-                           nll_reduction=cfg.nll_reduction)
+    val = _validate(loop, data)
     n_used = max(sums[3].item(), 1.0)
     record: dict[str, Any] = {
         "epoch": epoch + 1,
@@ -606,8 +601,21 @@ def _epoch_record(loop: _Loop, data: TrainData, epoch: int, stage: str, lr: floa
         "train_windows_per_s": sums[3].item() / max(train_time, 1e-9),
         **{k: int(v) for k, v in loop.counters.items() if k != "grad_log_ema"},
     }
-    record["val_objective"] = val["val_nll"] + (val["val_pos"] if stage == FINETUNE else 0.0)
+    record["val_objective"] = _objective(val, stage)
     return record
+
+
+def _validate(loop: _Loop, data: TrainData) -> dict:
+    """The model's validation metrics now (:func:`evaluate_windows` with the loop's guard, filter and batch)."""
+    cfg = loop.cfg
+    return evaluate_windows(loop.model, loop.guard, data.val, batch_size=max(loop.per_rank_batch, 64),
+                            with_position=loop.filt is not None, filt=loop.filt, beta=cfg.beta, info=loop.info,
+                            nll_reduction=cfg.nll_reduction)
+
+
+def _objective(val: dict, stage: str) -> float:
+    """What ``best.pt`` is chosen by in ``stage``: validation NLL, plus the position term when fine-tuning."""
+    return val["val_nll"] + (val["val_pos"] if stage == FINETUNE else 0.0)
 
 
 def _save_epoch(loop: _Loop, record: dict, history: list[dict], improved: bool, best_score: float, preset: str,
