@@ -32,23 +32,23 @@ class LatencyRecorder:
 
     def __init__(self, stages: tuple[str, ...] = STAGES, max_samples: int = 1 << 17) -> None:
         self._ns: dict[str, array] = {s: array("q") for s in stages}
-        self._total: dict[str, int] = dict.fromkeys(stages, 0)
+        self._dropped: dict[str, int] = dict.fromkeys(stages, 0)  # per stage: kept + dropped = every sample added
         self.max_samples = int(max_samples)
         self.dropped = 0
 
     def add(self, stage: str, duration_ns: int) -> None:
-        samples = self._ns[stage]
+        samples = self._ns[stage]  # (called several times per frame: one append, one length test)
         samples.append(duration_ns)
-        self._total[stage] += 1
         if len(samples) > self.max_samples:
             half = len(samples) // 2
             del samples[:half]
+            self._dropped[stage] += half
             self.dropped += half
 
     def clear(self, stage: str) -> None:
         """Forget ``stage``'s samples (the offline path, whose model stage does not run per row)."""
         del self._ns[stage][:]
-        self._total[stage] = 0
+        self._dropped[stage] = 0
 
     def samples_ms(self, stage: str) -> np.ndarray:
         """The kept samples of ``stage`` [ms], (n,) float64, oldest first."""
@@ -61,13 +61,13 @@ class LatencyRecorder:
 
     def total(self, stage: str) -> int:
         """Samples ever added to ``stage`` (kept or dropped)."""
-        return self._total[stage]
+        return len(self._ns[stage]) + self._dropped[stage]
 
     def stage_summary(self, stage: str, since: int = 0, since_total: int | None = None) -> dict:
         """``{count, mean_ms, p50_ms, p95_ms, p99_ms, max_ms}`` of ``stage``: the kept samples from index
         ``since``, or, with ``since_total`` (a :meth:`total` value), those added after it."""
         if since_total is not None:
-            since = max(since_total - (self._total[stage] - len(self._ns[stage])), 0)
+            since = max(since_total - self._dropped[stage], 0)
         ms = self.samples_ms(stage)[since:]
         if ms.size == 0:
             return {"count": 0}

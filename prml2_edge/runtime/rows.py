@@ -35,7 +35,7 @@ class GnssFix:
         return None if self.heading_deg is None else heading_deg_to_psi_rad(self.heading_deg)
 
 
-@dataclass
+@dataclass(slots=True)  # slots: one is built per CAN frame (~0.3 µs less each)
 class DecodedFrame:
     """What one frame contributed: values of canonical signals and their quality flags.
 

@@ -55,20 +55,30 @@ class FrameStats:
 
     def add_frame(self, status: FrameStatus, frame: DecodedFrame) -> None:
         """Count one frame: its final ``status`` and what the decoder and assembler noted on it."""
-        self.count(status, frame.message)
-        if frame.kind == "error":
-            self.error_frames += 1
-        elif frame.kind == "remote":
-            self.remote_frames += 1
-        self.counter_gaps += frame.counter_gap
-        per_reason = {"out_of_range": self.signal_out_of_range, "nonfinite": self.signal_nonfinite,
-                      "invalid_flag": self.signal_invalid_flag}
-        for index, reason in frame.flagged:
-            per_reason[reason][index] += 1
+        message = frame.message
+        if status is FrameStatus.USED and message is not None:  # the usual frame: count() inlined
+            self.received += 1
+            self.by_status[status] += 1
+            self.by_message[message] = self.by_message.get(message, 0) + 1
+        else:
+            self.count(status, message)
+        if frame.kind is not None:
+            if frame.kind == "error":
+                self.error_frames += 1
+            elif frame.kind == "remote":
+                self.remote_frames += 1
+        if frame.flagged:
+            per_reason = {"out_of_range": self.signal_out_of_range, "nonfinite": self.signal_nonfinite,
+                          "invalid_flag": self.signal_invalid_flag}
+            for index, reason in frame.flagged:
+                per_reason[reason][index] += 1
+        updates = self.signal_updates
         for index in frame.updated:
-            self.signal_updates[index] += 1
-        for index in frame.late:
-            self.signal_late[index] += 1
+            updates[index] += 1
+        if frame.late:
+            for index in frame.late:
+                self.signal_late[index] += 1
+        self.counter_gaps += frame.counter_gap
         self.late_applied += frame.late_applied
         self.clock_jumps += frame.clock_jump
         if frame.gnss is not None:
