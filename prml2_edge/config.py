@@ -47,7 +47,8 @@ class ModelConfig:
     path: str | None = None  # ONNX file; None: the shipped default model
     sha256: str | None = None  # pin: refuse any other file
     providers: tuple[str, ...] = ("tensorrt", "cuda", "cpu")
-    threads: int = 1  # ONNX Runtime intra-op threads
+    threads: int = 1  # ONNX Runtime intra-op threads; >= 2 is an upper bound: one where that runs the model faster
+    fixed_threads: bool = False  # run on `threads` even where one intra-op thread is faster (runtime/inference.py)
     # ONNX Runtime's worker threads spin (busy-wait) between parallel sections instead of sleeping: with
     # threads >= 2 it cut the paper-size model's e2e p99 from 39 to 30 ms here (docs/benchmarks.md) at
     # the cost of CPU time the other processes of the box then do not get; off by default

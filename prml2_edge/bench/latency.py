@@ -73,13 +73,14 @@ class StepSamples:
 
 
 def open_session_model(path: str | Path, threads: int = 1, spinning: bool | None = None,
-                       providers: Sequence[str] = ("cpu",)):
+                       providers: Sequence[str] = ("cpu",), fixed_threads: bool = False):
     """The runtime's :class:`OnnxModel` for ``path`` (``providers`` as the runtime takes them: ``tensorrt``,
     ``cuda``, ``cpu``); ``spinning`` True turns onnxruntime's worker-thread spinning on, as the runtime's
-    ``[model] spinning`` option does (default off)."""
+    ``[model] spinning`` option does (default off); ``threads`` >= 2 is an upper bound as in the runtime, unless
+    ``fixed_threads``."""
     from prml2_edge.runtime.inference import OnnxModel
 
-    return OnnxModel(path, threads=threads, providers=providers, spinning=bool(spinning))
+    return OnnxModel(path, threads=threads, providers=providers, spinning=bool(spinning), fixed_threads=fixed_threads)
 
 
 def build_pipeline(model, initial_pose: InitialPose, signal_map: str = "prml2_onboard",

@@ -72,6 +72,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-gemm", action="store_true", help="skip the NumPy fp32 GEMM reference")
     parser.add_argument("--spinning", action="store_true",
                         help="onnxruntime thread spinning on (the runtime's default is off)")
+    parser.add_argument("--fixed-threads", action="store_true",
+                        help="run on each thread count as given; by default 2 or more is an upper bound, as in the "
+                             "runtime (a model faster on one intra-op thread gets one: the record's threads_used)")
     parser.add_argument("--providers", default="cpu", metavar="P[,P]",
                         help="onnxruntime execution providers in order of preference: tensorrt, cuda, cpu "
                              "(default cpu; on a Jetson try tensorrt,cuda,cpu)")
@@ -167,8 +170,8 @@ def _measure_group(args: argparse.Namespace, path: Path, variants: list[tuple[st
     from prml2_edge.bench.machine import load_average
     from prml2_edge.runtime.latency import DEADLINE_MS
 
-    models = {p: open_session_model(vp, threads=n_threads, spinning=args.spinning, providers=providers)
-              for p, vp in variants}
+    models = {p: open_session_model(vp, threads=n_threads, spinning=args.spinning, providers=providers,
+                                    fixed_threads=args.fixed_threads) for p, vp in variants}
     pipes = {p: build_pipeline(m, replay.initial_pose) for p, m in models.items()}
     warm, chunks = split_frames(replay.frames, schema.WINDOW_LEN + args.warmup_steps, args.chunk_s)
     for pipe in pipes.values():
@@ -186,6 +189,9 @@ def _measure_group(args: argparse.Namespace, path: Path, variants: list[tuple[st
             "name": f"{_label(model)}-{precision}-{n_threads}t",
             "model": str(path), "variant": str(variant_path), "preset": model.metadata.preset,
             "precision": precision, "threads": n_threads, "spinning": bool(args.spinning),
+            "threads_used": model.threads,  # thread_timing_ms: {threads: mean ms} of the start-up choice, if one
+            "thread_timing_ms": {str(k): v for k, v in model.thread_timing_ms.items()} if model.thread_timing_ms
+            else None,
             "providers": model.providers, "steps": len(s.e2e_ms),
             **s.summary(),
             "deadline_ms": DEADLINE_MS,
@@ -288,5 +294,11 @@ def table_lines(doc: dict) -> list[str]:
     if n_acc:
         lines.append(f"z RMSE chg: largest relative change of a state's z RMSE against the fp32 graph, {n_acc} "
                      "simulated windows")
+    for c in doc["configs"]:
+        if c.get("threads_used", c["threads"]) != c["threads"]:
+            t = c["thread_timing_ms"]
+            lines.append(f"note: {c['name']} ran on {c['threads_used']} intra-op thread(s), faster for this model here "
+                         f"(mean {t[str(c['threads_used'])]:.2f} against {t[str(c['threads'])]:.2f} ms at start; "
+                         "--fixed-threads runs it as asked)")
     lines.extend(f"note: {n}" for n in doc["notes"])
     return lines

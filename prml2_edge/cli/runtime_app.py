@@ -51,6 +51,7 @@ def config_from_args(args: argparse.Namespace) -> RuntimeConfig:
                  "steering_ratio": getattr(args, "steering_ratio", None)},
         model={"path": args.model, "threads": args.threads, "stride": args.stride, "providers": providers,
                "spinning": True if getattr(args, "spinning", False) else None,
+               "fixed_threads": True if getattr(args, "fixed_threads", False) else None,
                "async_inference": True if getattr(args, "async_inference", False) else None},
         initial_pose=pose,
         sinks={"jsonl": args.jsonl, "csv": args.csv, "tum": args.tum, "mcap": getattr(args, "mcap", None),
@@ -121,7 +122,8 @@ def build_pipeline(cfg: RuntimeConfig, extra_sinks: list | None = None, external
     sinks = file_sinks(cfg) + list(extra_sinks or [])
     try:
         return Pipeline.build(map=cfg.signals.map, dbc=cfg.signals.dbc, model=model_path, threads=cfg.model.threads,
-                              spinning=cfg.model.spinning, providers=cfg.model.providers, stride=cfg.model.stride,
+                              spinning=cfg.model.spinning, fixed_threads=cfg.model.fixed_threads,
+                              providers=cfg.model.providers, stride=cfg.model.stride,
                               async_inference=cfg.model.async_inference, mu=cfg.signals.mu,
                               stale_periods=cfg.signals.stale_periods, driven_axle=cfg.signals.driven_axle,
                               steering_ratio=cfg.signals.steering_ratio, initial_pose=initial_pose, sinks=sinks,

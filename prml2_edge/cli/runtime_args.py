@@ -21,7 +21,10 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
                         "is taken from the other axle, whose wheels do not spin up with the traction")
     g.add_argument("--steering-ratio", type=float,
                    help="steering wheel angle over road wheel angle (default 15; front-wheel steer corrections)")
-    g.add_argument("--threads", type=int, help="ONNX Runtime intra-op threads (default 1)")
+    g.add_argument("--threads", type=int, help="ONNX Runtime intra-op threads (default 1); 2 or more is an upper "
+                   "bound: a model that runs faster on one thread on this machine gets one (logged)")
+    g.add_argument("--fixed-threads", action="store_true",
+                   help="run the model on --threads even where one intra-op thread is faster")
     g.add_argument("--spinning", action="store_true",
                    help="with --threads >= 2: ONNX Runtime worker threads busy-wait between parallel sections "
                         "instead of sleeping (tighter p99 latency, more CPU)")

@@ -1,9 +1,10 @@
 """ONNX Runtime session for a PRML2 model: load, check its metadata, run one window.
 
 The session is configured for a small, predictable edge footprint: ``intra_op_num_threads``
-from the config (default 1), one inter-op thread, thread spinning off unless asked for (an idle
-spinning thread would steal the CPU the CAN loop needs; with 2+ threads spinning tightens the
-tail latency of a large model), all graph optimisations. Providers come
+from the config (default 1; more only where they are faster: :meth:`OnnxModel.pick_threads`), one
+inter-op thread, thread spinning off unless asked for (an idle spinning thread would steal the CPU
+the CAN loop needs; with 2+ threads spinning tightens the tail latency of a large model), all graph
+optimisations. Providers come
 from :func:`prml2_edge.runtime.providers.select_providers` (TensorRT -> CUDA -> CPU,
 whichever this onnxruntime offers).
 
@@ -76,6 +77,9 @@ class OnnxModel:
         Intra-op threads (CPU provider).
     spinning:
         onnxruntime's worker threads busy-wait between parallel sections (``threads`` >= 2).
+    fixed_threads:
+        Run on ``threads`` as given. By default ``threads`` >= 2 is an upper bound: a model that runs faster on one
+        intra-op thread on this machine gets one (:meth:`pick_threads`; :attr:`threads` says which).
     providers:
         Provider short names in order of preference (``tensorrt``, ``cuda``, ``cpu``).
 
@@ -85,7 +89,8 @@ class OnnxModel:
     """
 
     def __init__(self, path: str | Path, threads: int = 1, providers: Sequence[str] = ("cpu",),
-                 trt_cache_dir: str = "~/.cache/prml2/trt", trt_fp16: bool = False, spinning: bool = False) -> None:
+                 trt_cache_dir: str = "~/.cache/prml2/trt", trt_fp16: bool = False, spinning: bool = False,
+                 fixed_threads: bool = False) -> None:
         import onnxruntime as ort
 
         from prml2_edge.runtime.providers import select_providers
@@ -128,6 +133,47 @@ class OnnxModel:
         self.last_error = ""
         log.info("%s; %s", self.provider_choice.describe(), self.describe())
         self.warm_up_ms = self.warm_up()
+        self.threads_requested = self.threads = int(threads)
+        self.thread_timing_ms: dict[int, float] | None = None
+        if threads > 1 and not fixed_threads and self.providers[0] == "CPUExecutionProvider":
+            self.pick_threads(spinning)
+
+    def pick_threads(self, spinning: bool, budget_s: float = 0.5, min_runs: int = 15) -> int:
+        """One intra-op thread instead of :attr:`threads_requested` when the model runs faster so on this machine.
+
+        A small model's operators are too short for a second thread to pay for waking it (the edge model: e2e p99
+        1.9-2.4 ms on 2 threads against 1.7-1.8 on 1, docs/benchmarks.md), a large one's are not. Both sessions
+        run the warm-up window alternately, at least ``min_runs`` times each and for about ``budget_s`` seconds;
+        the lower mean (which a slow tail raises) wins. :attr:`thread_timing_ms` keeps the means.
+        """
+        import onnxruntime as ort
+
+        one = ort.InferenceSession(str(self.path), sess_options=session_options(1, spinning=spinning),
+                                   providers=self.provider_choice.providers)
+        sessions = {self.threads_requested: self.session, 1: one}
+        window = self._neutral_window()
+        times: dict[int, list[float]] = {n: [] for n in sessions}
+        one.run(self.output_names, {self.input_name: window})
+        t_end = time.perf_counter() + budget_s
+        while len(times[1]) < min_runs or (time.perf_counter() < t_end and len(times[1]) < 1000):
+            for n, sess in sessions.items():
+                t0 = time.perf_counter()
+                sess.run(self.output_names, {self.input_name: window})
+                times[n].append((time.perf_counter() - t0) * 1e3)
+        self.thread_timing_ms = {n: float(np.mean(t)) for n, t in times.items()}
+        if self.thread_timing_ms[1] < self.thread_timing_ms[self.threads_requested]:
+            self.session, self.threads = one, 1
+            log.info("%s: %d intra-op threads asked for, one is faster for this model here (mean %.2f against "
+                     "%.2f ms over %d runs each): using 1 ([model] fixed_threads = true keeps %d)", self.path.name,
+                     self.threads_requested, self.thread_timing_ms[1], self.thread_timing_ms[self.threads_requested],
+                     len(times[1]), self.threads_requested)
+        return self.threads
+
+    def _neutral_window(self) -> np.ndarray:
+        """(1, L, 9) float32: every row the model's normalisation mean (a car at rest on its mean signals)."""
+        window = np.zeros((1, self.window_len, schema.NUM_SIGNALS), dtype=np.float32)
+        window[0] = np.asarray(self.metadata.norm_mean, dtype=np.float32)
+        return window
 
     def warm_up(self, runs: int = 3) -> list[float]:
         """Run a few inferences on a neutral window before the first real frame [ms each].
@@ -136,8 +182,7 @@ class OnnxModel:
         engine); doing it here keeps that out of the first real 50 Hz step. Not counted in
         :attr:`n_runs`. Raises :class:`ModelError` when the model cannot run at all.
         """
-        window = np.zeros((1, self.window_len, schema.NUM_SIGNALS), dtype=np.float32)
-        window[0] = np.asarray(self.metadata.norm_mean, dtype=np.float32)
+        window = self._neutral_window()
         times = []
         for _ in range(runs):
             t0 = time.perf_counter()

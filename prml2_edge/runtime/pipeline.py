@@ -145,6 +145,7 @@ class Pipeline:
     def build(cls, map: str | Path = "prml2_onboard", dbc: str | Path | None = None,
               model: str | Path | OnnxModel | None = None, threads: int = 1, providers: Sequence[str] = ("cpu",),
               spinning: bool = False,
+              fixed_threads: bool = False,
               stride: int = DEFAULT_STRIDE, async_inference: bool = False, mu: float = 1.0, stale_periods: float = 3.0,
               driven_axle: str = "front", steering_ratio: float = 15.0,
               initial_pose: InitialPose | None = None, sinks: Sequence = (),
@@ -168,7 +169,7 @@ class Pipeline:
         if not isinstance(model, OnnxModel):
             model = OnnxModel(model if model is not None else default_model_path(), threads=threads,
                               providers=providers, trt_cache_dir=trt_cache_dir, trt_fp16=trt_fp16,
-                              spinning=spinning)
+                              spinning=spinning, fixed_threads=fixed_threads)
         cfg = localizer_config or LocalizerConfig(stride=stride, async_inference=async_inference, mu=mu,
                                                   calibration=calibration, driven_axle=driven_axle,
                                                   steering_ratio=steering_ratio)

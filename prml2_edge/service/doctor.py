@@ -112,6 +112,7 @@ def check_model(cfg: RuntimeConfig, runs: int = 50) -> list[Check]:
         path = Path(cfg.model.path) if cfg.model.path else default_model_path()
         digest = verify_pinned_model(path, cfg.model.sha256)
         model = OnnxModel(path, threads=cfg.model.threads, providers=cfg.model.providers,
+                          spinning=cfg.model.spinning, fixed_threads=cfg.model.fixed_threads,
                           trt_cache_dir=cfg.model.trt_cache_dir, trt_fp16=cfg.model.trt_fp16)
     except (Prml2Error, OSError) as exc:
         return [Check("model", FAIL, first_line(exc, 200),

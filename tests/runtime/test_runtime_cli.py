@@ -211,7 +211,8 @@ def test_deploy_config_with_flag_overrides(repo_root, files, tmp_path):
     add_pipeline_arguments(parser)
     args = parser.parse_args(["--config", str(repo_root / "deploy" / "runtime.toml"), "--model", str(model),
                               "--jsonl", str(tmp_path / "p.jsonl"), "--mu", "0.4", "--initial-pose", "1,2,180",
-                              "--driven-axle", "rear", "--steering-ratio", "14.5"])
+                              "--driven-axle", "rear", "--steering-ratio", "14.5", "--threads", "2",
+                              "--fixed-threads"])
     cfg = config_from_args(args)
     assert cfg.signals.mu == 0.4 and cfg.model.path == str(model) and cfg.initial_pose.source == "config"
     assert cfg.initial_pose.heading_deg == 180.0 and cfg.can.channel == "can0"  # untouched file value
@@ -220,6 +221,7 @@ def test_deploy_config_with_flag_overrides(repo_root, files, tmp_path):
     # the car's driven axle and steering ratio reach the filter and the plausibility checks
     assert (pipeline.localizer.config.driven_axle, pipeline.localizer.config.steering_ratio) == ("rear", 14.5)
     assert pipeline.plausibility.config.steering_ratio == 14.5
+    assert pipeline.model.threads == 2 and pipeline.model.thread_timing_ms is None  # --fixed-threads: as asked
     pipeline.close()
     pinned = config_from_args(parser.parse_args(["--model", str(model)]))
     from dataclasses import replace

@@ -67,3 +67,21 @@ def test_default_model_path_names_the_shipped_file():
         assert "export/default/prml2_edge.onnx" in str(exc)
     else:
         assert path.name == "prml2_edge.onnx" and path.is_file()
+
+
+def test_two_threads_asked_for_run_on_the_faster_count_and_fixed_threads_keeps_two():
+    """``threads`` >= 2 is an upper bound: both counts are timed at start and the session kept is the faster one's
+    (the shipped edge model's operators are short; which wins depends on the machine, the rule does not)."""
+    picked = OnnxModel(default_model_path(), threads=2)
+    timing = picked.thread_timing_ms
+    assert set(timing) == {1, 2} and all(t > 0 for t in timing.values())
+    assert picked.threads == min(timing, key=timing.get) and picked.threads_requested == 2
+    assert picked.session.get_session_options().intra_op_num_threads == picked.threads
+    window = np.zeros((1, picked.window_len, schema.NUM_SIGNALS), dtype=np.float32)
+    window[0] = picked.metadata.norm_mean
+    assert picked.step(window) is InferenceStatus.SUCCESS
+    fixed = OnnxModel(default_model_path(), threads=2, fixed_threads=True)
+    assert fixed.threads == 2 and fixed.thread_timing_ms is None
+    assert fixed.session.get_session_options().intra_op_num_threads == 2
+    one = OnnxModel(default_model_path(), threads=1)
+    assert one.threads == 1 and one.thread_timing_ms is None
