@@ -230,7 +230,9 @@ def run_split(tasks, specs: dict[str, ModelSpec], jobs: int, label: str, bounds=
     return results
 
 
-def summarise(results: dict[str, list], osd: list) -> dict:
+def summarise(results: dict[str, list], osd: list, extra: tuple[str, ...] = ()) -> dict:
+    """Per row: RMSE, drift, coverage, paired against OSD (and OSD with the same gain); the ``extra`` rows (the
+    ``--variant`` ones) also paired against the default, the choice they would replace."""
     out = {}
     ref = dr_summary(osd)["rmse_mean_m"]
     for name, res in {OSD: osd, **results}.items():
@@ -242,6 +244,8 @@ def summarise(results: dict[str, list], osd: list) -> dict:
                      "per_car": per_car(res, osd)}
         if OSD_GAIN in results and name != OSD_GAIN and name in (DEFAULT, HELD):  # against OSD with the same gain
             out[name]["paired_vs_osd_gain"] = paired_comparison(results[OSD_GAIN], res)
+        if name in extra and DEFAULT in results:
+            out[name]["paired_vs_default"] = paired_comparison(results[DEFAULT], res)
     return out
 
 
@@ -294,7 +298,8 @@ def measure(args: argparse.Namespace) -> dict:
                             bounds=lambda t: bound_specs(specs, osd_spec, gains, t))
             if any(len(r) != len(tasks) for r in res.values()):  # a drive without its drawn gain: no bound rows
                 res = {n: r for n, r in res.items() if len(r) == len(tasks)}
-            doc["splits"][f"{split} / {protocol}"] = summarise(res, osd)
+            extra_rows = tuple(label for label, _ in args.variant)
+            doc["splits"][f"{split} / {protocol}"] = summarise(res, osd, extra=extra_rows)
     return doc
 
 
@@ -309,7 +314,7 @@ def markdown(doc: dict) -> list[str]:
             c = coverage_text(r["coverage_pct"])
             out.append(f"| {key} | {name} | {r['rmse_mean_m']:.2f} ({r['ratio_to_osd']:.2f}×) | "
                        f"{r['drift_mean_pct']:.2f} | {paired} | {c} | {r['n_windows']} |")
-    out += car_table(doc) + same_gain_table(doc)
+    out += car_table(doc) + same_gain_table(doc) + against_default_table(doc)
     out += ["", f"Replay check: the default filter on replayed outputs against the model itself, largest position "
             f"difference {doc.get('replay_exact_max_m', float('nan')):.1e} m. OSD Q scale {doc['osd_q_scale']:g} "
             f"(tuned on val). {doc['wall_s']:.0f} s."]
@@ -329,6 +334,22 @@ def same_gain_table(doc: dict) -> list[str]:
         ref = doc["splits"][key][OSD_GAIN]["rmse_mean_m"]
         out.append(f"| {key} | {name} | {r['rmse_mean_m']:.2f} | {ref:.2f} | {r['rmse_mean_m'] / ref:.2f}× | "
                    f"{paired_text(r['paired_vs_osd_gain'])} |")
+    return out
+
+
+def against_default_table(doc: dict) -> list[str]:
+    """The ``--variant`` rows against the runtime's default on the same windows (what choosing them would change)."""
+    rows = [(key, name, r) for key, split in doc["splits"].items() for name, r in split.items()
+            if "paired_vs_default" in r]
+    if not rows:
+        return []
+    out = ["", "The extra variants against the default (mean of (variant − default) RMSE per window [m], 95 %):", "",
+           "| split / protocol | variant | RMSE m | the default m | paired m | variant better on |",
+           "|---|---|---:|---:|---|---:|"]
+    for key, name, r in rows:
+        p = r["paired_vs_default"]
+        out.append(f"| {key} | {name} | {r['rmse_mean_m']:.2f} | {doc['splits'][key][DEFAULT]['rmse_mean_m']:.2f} | "
+                   f"{paired_text(p)} | {100 * (1 - p['reference_wins']):.0f} % |")
     return out
 
 
