@@ -98,6 +98,7 @@ NO_SLIP = ("low_mu_slip_gain", 0.0)  # no along-track slip uncertainty on a low-
 NO_SLIP_ROW = "the default without the low-μ slip uncertainty"
 REAR_CUE = ("driven_axle", "front")  # the wheel cue from the rear axle on every car (as before: a RWD car's driven one)
 REAR_CUE_ROW = "the default with the rear-axle wheel cue on every car"
+NO_SCALE_HISTORY_ROW = "the default without the wheel scale from the unit's earlier drives"
 GAIN_RESIDUAL = 0.003  # the gain known to 0.3 % (1 sigma)
 BOUNDS = {"bound: OSD, the drive's gyro gain known": (OSD, 0.0),
           "bound: the default, the drive's gyro gain known": (HELD, 0.0),
@@ -126,7 +127,8 @@ def variants(model: str) -> dict[str, ModelSpec]:
             NO_SLIDE_ROW: replace(cal, filter=(NO_SLIDE,)),
             NO_LOW_MU_ROW: replace(cal, filter=(NO_LOW_MU,)),
             NO_SLIP_ROW: replace(cal, filter=(NO_SLIP,)),
-            REAR_CUE_ROW: replace(cal, filter=(REAR_CUE,))}
+            REAR_CUE_ROW: replace(cal, filter=(REAR_CUE,)),
+            NO_SCALE_HISTORY_ROW: replace(cal, wheel_scale_history=False)}
 
 
 PROTOCOLS = {"paper": 0.0, "deployment": DEPLOYMENT_PREROLL_S}

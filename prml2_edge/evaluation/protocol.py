@@ -58,6 +58,8 @@ class ModelSpec:
     calibration: bool = False  # the filter's calibration states and raw cues (runtime/filter.py)
     # with calibration: start from the standstill offset the OSD baseline uses (restore_standstill_calibration)
     standstill_calibration: bool = True
+    # with calibration: start from the wheel scale the car's earlier drives taught (the task's wheel_scale)
+    wheel_scale_history: bool = True
     filter: tuple[tuple[str, object], ...] = ()  # LocalizerConfig fields to override, (name, value) pairs
 
     def __post_init__(self) -> None:
@@ -98,6 +100,8 @@ class WindowTask:
     # the drive's car when it is one of the simulated fleet ("": not known); its driven axle and steering ratio go to
     # the runtime's filter, as a user's config would give them (Car.filter_settings)
     vehicle: str = ""
+    # the cue axle's wheel scale the same history's GNSS baselines taught the file: (scale, variance); None: none
+    wheel_scale: tuple[float, float] | None = None
 
     @property
     def key(self) -> str:
@@ -167,9 +171,10 @@ def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: 
     by that much GNSS-aided driving, whose rows (and history before them) may reach back before
     the segment (onboard signals a car would have had; their ground truth only makes the fixes).
     ``history_min`` > 0: each simulated drive's car also has that many minutes of earlier drives, whose GNSS
-    heading taught its calibration file the gyro's gain (:func:`~prml2_edge.evaluation.unit_history.gain_evidence`).
+    heading taught its calibration file the gyro's gain (:func:`~prml2_edge.evaluation.unit_history.gain_evidence`)
+    and the wheel scale (:func:`~prml2_edge.evaluation.unit_history.wheel_scale_evidence`).
     """
-    from prml2_edge.evaluation.unit_history import gain_evidence
+    from prml2_edge.evaluation.unit_history import gain_evidence, wheel_scale_evidence
 
     steps = int(round(window_s / schema.DT_S))
     pre = int(round(preroll_s / schema.DT_S))
@@ -180,6 +185,7 @@ def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: 
             continue
         mu = float(drive.meta.get("mu", 1.0))
         evidence = gain_evidence(drive, history_min) if history_min > 0.0 else None
+        scale = wheel_scale_evidence(drive, history_min) if history_min > 0.0 else None
         starts = list(range(max(a, hist + pre), b - steps + 1, steps))
         if max_windows is not None:
             starts = starts[:max_windows]
@@ -192,7 +198,7 @@ def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: 
                                     drive.onboard[start - pre - hist : start + steps],
                                     drive.t_s[sl], drive.z_gt[sl], drive.pose_gt[sl], mu, bias, pre,
                                     drive.pose_gt[ps] if pre else None, drive.z_gt[ps] if pre else None,
-                                    evidence, str(drive.meta.get("vehicle", ""))))
+                                    evidence, str(drive.meta.get("vehicle", "")), scale))
     return tasks
 
 
@@ -293,23 +299,29 @@ def _start_state(task: WindowTask) -> np.ndarray:
     return x0
 
 
-def restore_standstill_calibration(loc, bias: StandstillBias) -> bool:
-    """Start the calibrated filter from the yaw-rate offset the OSD baseline uses, when it has one.
+def restore_standstill_calibration(loc, bias: StandstillBias, wheel_scale: tuple[float, float] | None = None) -> bool:
+    """Start the calibrated filter from the yaw-rate offset the OSD baseline uses, when it has one, and from the
+    wheel scale the car's earlier drives taught (``wheel_scale``: (scale, variance)), when it has one.
 
     The OSD baseline subtracts the standstill bias of the drive before the window (else of the whole
     drive); the calibrated filter starting from the prior would know less than the baseline it is
-    compared with. A car keeps what a standstill taught it in its calibration file
-    (:mod:`~prml2_edge.runtime.calibration`), so the filter starts from that offset with the file's
-    restore floor as its uncertainty, the wheel scale and the model bias from their priors. True when restored.
+    compared with. A car keeps what a standstill taught it, and the wheel scale its GNSS baselines taught, in its
+    calibration file (:mod:`~prml2_edge.runtime.calibration`), so the filter starts from them with at least the
+    file's restore floor as their uncertainty; what it does not know (and the model bias) from the priors. True when
+    anything was restored.
     """
     from prml2_edge.evaluation.osd import MIN_STANDSTILL_SAMPLES
     from prml2_edge.runtime.calibration import RESTORE_STD_FLOOR
 
-    if bias.n_samples < MIN_STANDSTILL_SAMPLES:
+    offset = bias.n_samples >= MIN_STANDSTILL_SAMPLES
+    if not offset and wheel_scale is None:
         return False
     cfg = loc.config
-    std = np.array([RESTORE_STD_FLOOR[0], cfg.cal_wheel_scale_prior_std, cfg.cal_model_bias_std_radps])
-    loc.restore_calibration(np.array([bias.yaw_rate_radps, 0.0, 0.0]), np.diag(std**2))
+    k, k_std = (wheel_scale[0], max(math.sqrt(wheel_scale[1]), RESTORE_STD_FLOOR[1])) if wheel_scale is not None \
+        else (0.0, cfg.cal_wheel_scale_prior_std)
+    std = np.array([RESTORE_STD_FLOOR[0] if offset else cfg.cal_yaw_offset_prior_std_radps, k_std,
+                    cfg.cal_model_bias_std_radps])
+    loc.restore_calibration(np.array([bias.yaw_rate_radps if offset else 0.0, k, 0.0]), np.diag(std**2))
     return True
 
 
@@ -328,7 +340,7 @@ def run_window(spec: ModelSpec, task: WindowTask, stride: int = 1, model=None) -
     loc = StreamingLocalizer(model, _localizer_config(spec, task, stride), process_noise=process_noise(model,
                                                                                                       spec.q_scale))
     if spec.calibration and spec.standstill_calibration:
-        restore_standstill_calibration(loc, task.bias)
+        restore_standstill_calibration(loc, task.bias, task.wheel_scale if spec.wheel_scale_history else None)
         if task.yaw_gain is not None:
             loc.filter.yaw_gain.restore(*task.yaw_gain)
     if not spec.guard:

@@ -119,6 +119,12 @@ def test_evaluation_starts_the_calibrated_filter_from_the_baselines_standstill_o
     assert restore_standstill_calibration(loc, StandstillBias(0.1, math.radians(0.3), 400))
     cal, cov = loc.filter.calibration0
     assert cal[0] == pytest.approx(math.radians(0.3)) and math.sqrt(cov[0, 0]) == pytest.approx(math.radians(0.05))
+    assert cal[1] == 0.0 and math.sqrt(cov[1, 1]) == pytest.approx(LocalizerConfig().cal_wheel_scale_prior_std)
+    # the wheel scale the car's earlier drives taught, floored as a restored file is; no standstill: offset prior
+    assert restore_standstill_calibration(loc, StandstillBias(n_samples=3), wheel_scale=(0.006, 1e-6 ** 2))
+    cal, cov = loc.filter.calibration0
+    assert cal[0] == 0.0 and math.sqrt(cov[0, 0]) == pytest.approx(LocalizerConfig().cal_yaw_offset_prior_std_radps)
+    assert cal[1] == pytest.approx(0.006) and math.sqrt(cov[1, 1]) == pytest.approx(0.002)
 
 
 def _straight_with_gyro_offset(offset_dps: float, seconds: float) -> tuple[np.ndarray, np.ndarray]:

@@ -12,7 +12,7 @@ import pytest
 
 from prml2_edge import schema
 from prml2_edge.data.simulate import simulate_drive
-from prml2_edge.evaluation.unit_history import feed, gain_evidence
+from prml2_edge.evaluation.unit_history import WheelScaleHistory, feed, gain_evidence, wheel_scale_evidence
 from prml2_edge.runtime.calibration import CalibrationFile
 from prml2_edge.runtime.yaw_gain import YawGainEstimator
 
@@ -77,6 +77,23 @@ def test_a_coarse_gyro_has_no_history_and_a_fine_one_has_some():
     est = YawGainEstimator(HEADING_STD)
     est.restore(info, info_c)
     assert info > 0.0 and est.gain == pytest.approx(0.02, abs=0.006)
+
+
+def test_a_cars_history_keeps_its_tyres_and_teaches_the_file_its_wheel_scale():
+    """Tyres 1 % large on every wheel: the history's GNSS baselines (the runtime's rule: the cue axle rolling free,
+    not braking) find the tyres' scale, which a coarse gyro does not prevent; a RWD car's cue is its front axle,
+    steer-corrected. Braking rows would read it low: the brake's slip is not the tyres'."""
+    for vehicle, error in (("reference", 0.01), ("rwd_sedan", -0.01)):
+        drive = simulate_drive(0.5, 1.0, 5, "mixed", f"tyres_{vehicle}", sensor_errors={"wheel_radius_error": error},
+                               vehicle=vehicle)
+        scale, var = wheel_scale_evidence(drive, minutes=8.0, drives=2)
+        sd = math.sqrt(var)
+        cue = WheelScaleHistory(**({"driven_axle": "rear"} if vehicle == "rwd_sedan" else {})).cue_speed(drive.onboard)
+        moving = cue > 5.0
+        free = moving & (np.abs(drive.z_gt[:, schema.Z.A_X]) <= 0.3)
+        ratio = {name: cue[m].sum() / drive.z_gt[m, 0].sum() - 1.0 for name, m in (("free", free), ("all", moving))}
+        assert abs(ratio["free"] - error) < 0.0005 and ratio["all"] < ratio["free"] - 0.0005  # braking reads low
+        assert sd < 0.005 and abs(scale - error) < 3 * sd and abs(scale) > 2 * sd, (vehicle, scale, sd)
 
 
 def test_the_calibration_file_keeps_the_gain_evidence_and_reads_files_without_it(tmp_path, caplog):
