@@ -22,6 +22,10 @@ so each row differs from the next by one choice only, on the same windows. Varia
   (``prml2_edge.evaluation.unit_history``, ``runtime/yaw_gain.py``; the runtime's default). Every row above has
   the gain calibration off.
 
+Every calibrated row also starts from the wheel scale the car's simulated earlier drives taught its calibration file
+(``evaluation.unit_history.wheel_scale_evidence``), except ``the default without the wheel scale from the unit's
+earlier drives``.
+
 Beside OSD, ``OSD, gyro gain from the unit's earlier drives``: the OSD baseline on the CAN yaw rate divided by the
 same learned gain, as a model-free filter with the same calibration file would run.
 
