@@ -83,14 +83,14 @@ def _coarse(drive) -> bool:
 
 def _simulate_history(drive, gain: float, minutes: float, drives: int, variation: float) -> dict:
     from prml2_edge.data.simulate import simulate_drive
-    from prml2_edge.evaluation.protocol import car_settings
+    from prml2_edge.data.simulate.fleet import CARS
 
     meta = drive.meta
     coarse = _coarse(drive)
     tyres = (meta.get("sensor_errors") or {}).get("wheel_radius_error")
     rng = np.random.default_rng([zlib.crc32(drive.name.encode()), 0x6741494E])  # "gAIN"
     est = YawGainEstimator(math.radians(GNSS_HEADING_STD_DEG))
-    scale = WheelScaleHistory(**car_settings(str(meta["vehicle"])))
+    scale = WheelScaleHistory(**CARS[str(meta["vehicle"])].filter_settings())  # (_history: a car of the fleet)
     for j in range(drives):
         g = gain + float(rng.normal(0.0, variation))
         errors = {"yaw_scale_error": g} | ({"wheel_radius_error": tuple(tyres)} if tyres is not None else {})
