@@ -91,7 +91,6 @@ class OnnxModel:
     def __init__(self, path: str | Path, threads: int = 1, providers: Sequence[str] = ("cpu",),
                  trt_cache_dir: str = "~/.cache/prml2/trt", trt_fp16: bool = False, spinning: bool = False,
                  fixed_threads: bool = False) -> None:
-        import onnxruntime as ort
 
         from prml2_edge.runtime.providers import select_providers
 
@@ -100,15 +99,9 @@ class OnnxModel:
             raise ModelError(f"{self.path}: model file not found")
         if threads < 1:
             raise ModelError(f"threads must be >= 1, got {threads}")
-        opts = session_options(threads, spinning=spinning)
         self.spinning = bool(spinning)
-        choice = select_providers(providers, trt_cache_dir=trt_cache_dir, trt_fp16=trt_fp16)
-        self.provider_choice = choice
-        try:
-            self.session = ort.InferenceSession(str(self.path), sess_options=opts, providers=choice.providers)
-        except Exception as exc:
-            first = first_line(exc)
-            raise ModelError(f"{self.path}: onnxruntime cannot load the model ({first[:200]})") from exc
+        self.provider_choice = select_providers(providers, trt_cache_dir=trt_cache_dir, trt_fp16=trt_fp16)
+        self.session = self._open(threads)
         self.providers = self.session.get_providers()
         props = self.session.get_modelmeta().custom_metadata_map
         if METADATA_KEY not in props:
@@ -136,9 +129,9 @@ class OnnxModel:
         self.threads_requested = self.threads = int(threads)
         self.thread_timing_ms: dict[int, float] | None = None
         if threads > 1 and not fixed_threads and self.providers[0] == "CPUExecutionProvider":
-            self.pick_threads(spinning)
+            self.pick_threads()
 
-    def pick_threads(self, spinning: bool, budget_s: float = 0.5, min_runs: int = 15) -> int:
+    def pick_threads(self, budget_s: float = 0.5, min_runs: int = 15) -> int:
         """One intra-op thread instead of :attr:`threads_requested` when the model runs faster so on this machine.
 
         A small model's operators are too short for a second thread to pay for waking it (the edge model: e2e p99
@@ -146,10 +139,7 @@ class OnnxModel:
         run the warm-up window alternately, at least ``min_runs`` times each and for about ``budget_s`` seconds;
         the lower mean (which a slow tail raises) wins. :attr:`thread_timing_ms` keeps the means.
         """
-        import onnxruntime as ort
-
-        one = ort.InferenceSession(str(self.path), sess_options=session_options(1, spinning=spinning),
-                                   providers=self.provider_choice.providers)
+        one = self._open(1)
         sessions = {self.threads_requested: self.session, 1: one}
         window = self._neutral_window()
         times: dict[int, list[float]] = {n: [] for n in sessions}
@@ -168,6 +158,16 @@ class OnnxModel:
                      self.threads_requested, self.thread_timing_ms[1], self.thread_timing_ms[self.threads_requested],
                      len(times[1]), self.threads_requested)
         return self.threads
+
+    def _open(self, threads: int):
+        """An onnxruntime session of this model on ``threads`` intra-op threads (one-line error if it cannot load)."""
+        import onnxruntime as ort
+
+        try:
+            return ort.InferenceSession(str(self.path), sess_options=session_options(threads, spinning=self.spinning),
+                                        providers=self.provider_choice.providers)
+        except Exception as exc:
+            raise ModelError(f"{self.path}: onnxruntime cannot load the model ({first_line(exc)[:200]})") from exc
 
     def _neutral_window(self) -> np.ndarray:
         """(1, L, 9) float32: every row the model's normalisation mean (a car at rest on its mean signals)."""
