@@ -140,7 +140,7 @@ def encode_drive_to_log(drive, out_path: str | Path, signal_map_path: str | Path
     dbc_path : str or Path, optional
         DBC overriding the one the map names.
     gnss_seconds : float
-        Send 10 Hz GNSS fix frames (x east m, y north m, heading deg clockwise from north)
+        Send 10 Hz GNSS fix frames (x east m, y north m, course over ground deg clockwise from north)
         for the first ``gnss_seconds`` when the map has ``[gnss]`` and the drive has ``pose_gt``.
     progress : bool
         Progress bar on stderr.
@@ -168,6 +168,7 @@ def encode_drive_to_log(drive, out_path: str | Path, signal_map_path: str | Path
     events = _schedule(plans, t0, duration_s, n, min(gnss_seconds, duration_s) if with_gnss else 0.0)
     gnss_frames = 0
     gnss_msg = db.get_message_by_name(smap.gnss.message) if smap.gnss is not None else None
+    course_rad = course_over_ground(drive) if with_gnss else None
     counters = [0] * len(plans)
     per_message = {p.message.name: 0 for p in plans}
     clipped: dict[str, int] = {}
@@ -178,7 +179,7 @@ def encode_drive_to_log(drive, out_path: str | Path, signal_map_path: str | Path
     try:
         for i, (ts, pi, si) in enumerate(events):
             if pi < 0:
-                data = _encode_gnss(gnss_msg, smap.gnss, drive.pose_gt[si])
+                data = _encode_gnss(gnss_msg, smap.gnss, drive.pose_gt[si], course_rad[si])
                 msg = gnss_msg
                 gnss_frames += 1
             else:
@@ -291,14 +292,27 @@ def _encode_onboard(plan: _MessagePlan, row: list[float], count: int, clipped: d
     return data
 
 
-def _encode_gnss(msg, gnss, pose_row: np.ndarray) -> bytes:
-    """GNSS fix frame: x east [m], y north [m], heading clockwise from north [deg, 0-360)."""
+def course_over_ground(drive) -> np.ndarray:
+    """The direction of travel per row [rad, the EKF's convention]: ``psi + atan2(v_y, v_x)`` where the drive has
+    ``z_gt`` and moves (a receiver's course; below 0.5 m/s and without ``z_gt``, the yaw)."""
+    psi = np.asarray(drive.pose_gt[:, 2], dtype=np.float64)
+    z = getattr(drive, "z_gt", None)
+    if z is None:
+        return psi
+    vx, vy = z[:, schema.Z.V_X], z[:, schema.Z.V_Y]
+    moving = np.isfinite(vx) & np.isfinite(vy) & (np.hypot(vx, vy) >= 0.5)
+    return np.where(moving, psi + np.arctan2(np.where(moving, vy, 0.0), np.where(moving, vx, 1.0)), psi)
+
+
+def _encode_gnss(msg, gnss, pose_row: np.ndarray, course_rad: float) -> bytes:
+    """GNSS fix frame: x east [m], y north [m], course over ground clockwise from north [deg, 0-360) (what a
+    receiver on the bus sends: the direction of travel, not the car's yaw)."""
     values = {sig.name: _default_value(sig) for sig in msg.signals}
-    x_m, y_m, psi_rad = (float(v) for v in pose_row)
+    x_m, y_m = float(pose_row[0]), float(pose_row[1])
     values[gnss.x], _ = _quantise_physical(msg.get_signal_by_name(gnss.x), x_m)
     values[gnss.y], _ = _quantise_physical(msg.get_signal_by_name(gnss.y), y_m)
     if gnss.heading:
-        heading = schema.psi_rad_to_heading_deg(psi_rad)
+        heading = schema.psi_rad_to_heading_deg(float(course_rad))
         values[gnss.heading], _ = _quantise_physical(msg.get_signal_by_name(gnss.heading), heading)
     if gnss.valid:
         values[gnss.valid] = 1

@@ -552,6 +552,7 @@ def update_pose(
     pos_var: np.ndarray | float,
     yaw_rad: float | None = None,
     yaw_var: float | None = None,
+    course: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Fuse a pose fix (GNSS): position, optionally heading; same Cholesky/Joseph update.
 
@@ -563,6 +564,9 @@ def update_pose(
     yaw_rad : heading [rad], counter-clockwise from east; any branch (the innovation is wrapped
         to [-pi, pi), so the filter's unwrapped ``psi`` stays continuous).
     yaw_var : heading variance [rad^2], > 0; required with ``yaw_rad``.
+    course : ``yaw_rad`` is the course over ground (the direction the car moves: what a single-antenna receiver's
+        NMEA RMC course and gpsd's ``track`` are), ``psi + atan2(v_y, v_x)``, not the car's yaw. The sideslip
+        angle between them is 2-4 deg rms on the simulated drives and over 10 deg in tight turns.
     """
     pos_xy = np.asarray(pos_xy, dtype=np.float64).reshape(2)
     var = np.broadcast_to(np.asarray(pos_var, dtype=np.float64), (2,)).copy()
@@ -571,12 +575,40 @@ def update_pose(
     if yaw_rad is not None:
         if yaw_var is None:
             raise ValueError("yaw_var is required with yaw_rad")
+        if course:
+            return _update_course(x, P, pos_xy, var, float(yaw_rad), float(yaw_var))
         idx = np.append(_POS_IDX, _YAW)
         innovation = np.append(innovation, wrap_angle(float(yaw_rad) - x[_YAW]))
         var = np.append(var, float(yaw_var))
     if not np.all(var > 0.0):
         raise ValueError("pose variances must be > 0")
     return _update_selected(x, P, idx, innovation, var)
+
+
+def course_measurement(x: np.ndarray) -> tuple[float, np.ndarray]:
+    """``h(x) = psi + atan2(v_y, v_x)``, the course over ground [rad], and its Jacobian row (n,)."""
+    vx, vy = float(x[_VX]), float(x[_VY])
+    s2 = max(vx * vx + vy * vy, 1e-6)
+    h = np.zeros(x.shape[0])
+    h[_YAW] = 1.0
+    h[_VX] = -vy / s2
+    h[_VY] = vx / s2
+    return float(x[_YAW]) + math.atan2(vy, vx), h
+
+
+def _update_course(x: np.ndarray, P: np.ndarray, pos_xy: np.ndarray, pos_var: np.ndarray, course_rad: float,
+                   course_var: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`update_pose` with a course over ground: position rows select, the course row is linearised."""
+    pred, row = course_measurement(x)
+    h = np.zeros((3, x.shape[0]))
+    h[0, _PX] = h[1, _PY] = 1.0
+    h[2] = row
+    innovation = np.append(pos_xy - x[_POS_IDX], wrap_angle(course_rad - pred))
+    var = np.append(pos_var, course_var)
+    if not np.all(var > 0.0):
+        raise ValueError("pose variances must be > 0")
+    with np.errstate(invalid="ignore"):
+        return _update_linear(x, P, h, innovation, var)
 
 
 class StepStatus(enum.IntEnum):
@@ -796,8 +828,10 @@ class Ekf:
         pos_var: np.ndarray | float,
         yaw_rad: float | None = None,
         yaw_var: float | None = None,
+        course: bool = False,
     ) -> StepStatus:
-        """Fuse a pose fix at the current time (no prediction); see :func:`update_pose`."""
+        """Fuse a pose fix at the current time (no prediction); see :func:`update_pose` (``course``: the angle is
+        the course over ground, not the yaw)."""
         with np.errstate(all="ignore"):
             try:
                 pos = np.asarray(pos_xy, dtype=np.float64).reshape(2)
@@ -810,7 +844,7 @@ class Ekf:
             if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(var)) and np.all(var > 0.0)):
                 return StepStatus.INPUT_INVALID
             try:
-                x, p = update_pose(self.x, self.P, pos, var, yaw_rad, yaw_var)
+                x, p = update_pose(self.x, self.P, pos, var, yaw_rad, yaw_var, course)
             except np.linalg.LinAlgError:
                 x, p = np.full(self.dim, np.nan), self.P
             return self._commit(x, p, StepStatus.SUCCESS)

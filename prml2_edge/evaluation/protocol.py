@@ -209,7 +209,8 @@ DEPLOYMENT_PREROLL_S = 30.0  # GNSS-aided driving before each outage window [s]
 
 def simulated_fixes(task: WindowTask) -> dict[int, object]:
     """GNSS fixes for the pre-roll of a deployment task, by row index of ``task.onboard``: 10 Hz, position
-    noise 1.5 m per axis, heading (2 deg) only while moving; deterministic per task."""
+    noise 1.5 m per axis, and while moving the course over ground (the direction of travel, ``psi + atan2(v_y,
+    v_x)``, as a single-antenna receiver gives it; 2 deg noise); deterministic per task."""
     import zlib
 
     from prml2_edge.runtime.rows import GnssFix
@@ -223,8 +224,10 @@ def simulated_fixes(task: WindowTask) -> dict[int, object]:
     for j in range(every, task.preroll, every):  # row 0 is the start pose itself
         x, y, psi = task.pre_pose_gt[j]
         noise = rng.normal(0.0, GNSS_POS_STD_M, 2)
-        moving = float(np.hypot(*task.pre_z_gt[j, Z.VEL])) >= GNSS_HEADING_MIN_SPEED_MPS
-        heading = psi_rad_to_heading_deg(float(psi) + math.radians(rng.normal(0.0, GNSS_HEADING_STD_DEG)))
+        vx, vy = (float(v) for v in task.pre_z_gt[j, Z.VEL])
+        moving = math.hypot(vx, vy) >= GNSS_HEADING_MIN_SPEED_MPS
+        course = float(psi) + math.atan2(vy, vx)
+        heading = psi_rad_to_heading_deg(course + math.radians(rng.normal(0.0, GNSS_HEADING_STD_DEG)))
         fixes[task.history + j] = GnssFix(t_s=float((task.history + j) * schema.DT_S), x_m=float(x + noise[0]),
                                           y_m=float(y + noise[1]), heading_deg=heading if moving else None,
                                           valid=True)

@@ -39,7 +39,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from prml2_edge import schema
-from prml2_edge.ekf.numpy_ekf import CalibrationNoise, CalibrationStd, Ekf, StepStatus, wrap_angle
+from prml2_edge.ekf.numpy_ekf import (
+    CalibrationNoise,
+    CalibrationStd,
+    Ekf,
+    StepStatus,
+    course_measurement,
+    wrap_angle,
+)
 from prml2_edge.runtime.estimator import Estimate
 from prml2_edge.runtime.gnss_check import FixNoise, GnssCheck, GnssCheckConfig
 from prml2_edge.runtime.initial_pose import InitialPose, initial_state
@@ -482,6 +489,17 @@ class PoseFilter:
 
     # ---- GNSS ---------------------------------------------------------------------------------------
 
+    def _angle_plausible(self, angle: float, var: float, course: bool) -> bool:
+        """A fix's heading (or course over ground) within the innovation gate of the filter's prediction of it."""
+        x, p = self.ekf.x, self.ekf.P  # type: ignore[union-attr]
+        if course:
+            pred, h = course_measurement(x)
+            pred_var = float(h @ p @ h)
+        else:
+            pred, pred_var = float(x[_YAW]), float(p[_YAW, _YAW])
+        d = float(wrap_angle(angle - pred))
+        return d * d <= self.config.gnss_gate_chi2 * (pred_var + var)
+
     def _fuse(self, fix: GnssFix, t_s: float) -> bool:
         cfg = self.config
         self.fix_noise.add(fix.t_s, fix.x_m, fix.y_m)
@@ -494,6 +512,7 @@ class PoseFilter:
         pos = np.array([fix.x_m + (c * vx - s * vy) * lag_s, fix.y_m + (s * vx + c * vy) * lag_s])
         psi = fix.psi_rad
         yaw_var = None
+        course = bool(fix.course and cfg.gnss_course_sideslip)
         if psi is not None and math.hypot(vx, vy) >= cfg.gnss_heading_min_speed_mps:
             psi += x[_OMEGA] * lag_s
             yaw_var = math.radians(cfg.gnss_heading_std_deg) ** 2
@@ -515,12 +534,9 @@ class PoseFilter:
             return False
         if not self._gate(pos, m2):
             return False
-        if psi is not None and yaw_var is not None:
-            p = self.ekf.P  # type: ignore[union-attr]
-            d_psi = float(wrap_angle(psi - x[_YAW]))
-            if d_psi * d_psi > cfg.gnss_gate_chi2 * (p[_YAW, _YAW] + yaw_var):
-                psi = yaw_var = None  # position fine, heading implausible: fuse the position only
-        status = self.ekf.fuse_pose(pos, std_m ** 2, psi, yaw_var)  # type: ignore[union-attr]
+        if psi is not None and yaw_var is not None and not self._angle_plausible(psi, yaw_var, course):
+            psi = yaw_var = None  # position fine, heading implausible: fuse the position only
+        status = self.ekf.fuse_pose(pos, std_m ** 2, psi, yaw_var, course)  # type: ignore[union-attr]
         if status is StepStatus.SUCCESS:
             if psi is not None and self._gain_on:
                 self._gain_heading(t_s, float(psi))

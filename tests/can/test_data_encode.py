@@ -71,6 +71,21 @@ def test_log_decodes_to_original_signals(drive, map_db, tmp_path, suffix):
     assert gnss[-1][0] < drive.t_s[0] + 2.0
 
 
+def test_gnss_frames_carry_the_course_over_ground():
+    """A receiver on the bus sends the direction of travel, not the yaw: psi + atan2(v_y, v_x) while moving."""
+    from types import SimpleNamespace
+
+    from prml2_edge.can.encode import course_over_ground
+
+    pose = np.array([[0.0, 0.0, 0.3], [1.0, 0.0, 0.3], [2.0, 0.0, 0.3]])
+    z = np.zeros((3, schema.NUM_STATES))
+    z[:, schema.Z.V_X] = (10.0, 0.2, 10.0)
+    z[:, schema.Z.V_Y] = (1.0, 0.1, -1.0)  # the middle row too slow for a course: the yaw
+    got = course_over_ground(SimpleNamespace(pose_gt=pose, z_gt=z))
+    np.testing.assert_allclose(got, [0.3 + math.atan(0.1), 0.3, 0.3 - math.atan(0.1)])
+    np.testing.assert_array_equal(course_over_ground(SimpleNamespace(pose_gt=pose, z_gt=None)), pose[:, 2])
+
+
 def test_frames_in_time_order_and_cli(drive, tmp_path, capsys):
     csv = tmp_path / "d.csv"
     write_drive_csv(drive, csv)

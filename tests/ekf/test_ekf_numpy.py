@@ -144,6 +144,31 @@ def test_update_pose_wraps_heading_innovation() -> None:
         ne.update_pose(x, p, [0.0, 0.0], 0.0)
 
 
+def test_course_over_ground_is_the_yaw_plus_the_sideslip() -> None:
+    """A receiver's course (the direction of travel) fused as such leaves a sliding car's yaw where it is; fused
+    as the yaw, it turns the car by the sideslip angle (5.7 deg here)."""
+    x = np.zeros(EkfState.DIM)
+    x[EkfState.VEL] = (10.0, 1.0)  # beta = atan(0.1)
+    p = ne.default_initial_covariance()
+    p[EkfState.VEL, EkfState.VEL] = np.diag([1e-6, 1e-6])  # the velocity known: only the yaw can move
+    beta = math.atan2(1.0, 10.0)
+    pred, h = ne.course_measurement(x)
+    assert pred == pytest.approx(beta) and h[EkfState.YAW.start] == 1.0
+    assert h[EkfState.VEL.start + 1] == pytest.approx(10.0 / 101.0)  # d(course)/d(v_y) = v_x / v^2
+    course, _ = ne.update_pose(x, p, [0.0, 0.0], 1.0, yaw_rad=beta, yaw_var=1e-6, course=True)
+    as_yaw, _ = ne.update_pose(x, p, [0.0, 0.0], 1.0, yaw_rad=beta, yaw_var=1e-6)
+    assert abs(course[EkfState.YAW][0]) < 1e-6
+    assert as_yaw[EkfState.YAW][0] == pytest.approx(beta, rel=0.01)
+    # the course also tells the sideslip where the yaw is known and v_y is not
+    p2 = ne.default_initial_covariance()
+    p2[EkfState.YAW, EkfState.YAW] = 1e-8
+    x[EkfState.VEL] = (10.0, 0.0)
+    slid, _ = ne.update_pose(x, p2, [0.0, 0.0], 1.0, yaw_rad=beta, yaw_var=1e-6, course=True)
+    assert slid[EkfState.VEL.start + 1] == pytest.approx(1.0, rel=0.02)
+    ekf = Ekf(x0=x)
+    assert ekf.fuse_pose([0.0, 0.0], 1.0, yaw_rad=beta, yaw_var=1e-4, course=True) is StepStatus.SUCCESS
+
+
 def test_circle_dead_reckoning() -> None:
     """Noise-free steady circle (a = 0 in the model's sense): 20 s, position within Euler error."""
     v, w = 10.0, 0.2
