@@ -94,6 +94,7 @@ class GnssConfig:
     file: str | None = None  # prml2 replay (--gnss): an NMEA log, a CSV (t_s,x_m,y_m[,heading_deg]) or a TUM file
     origin: tuple[float, ...] | None = None  # [LAT, LON] of the local east/north frame (--gnss-origin); None: 1st fix
     time_offset_s: float = 0.0  # prml2 replay (--gnss-time-offset): seconds added to the file's fix times
+    course: bool = True  # the fixes' angle is the course over ground (a receiver's); false: the car's yaw (an INS)
 
 
 @dataclass(frozen=True)

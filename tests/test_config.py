@@ -41,7 +41,7 @@ def test_shipped_example_lists_every_option(repo_root):
     ({"initial_pose": {"source": "magic"}}, r"source must be one of"),
     ({"sinks": "x"}, r"\[sinks\]: expected a table"),
     ({"gnss": {"reciever": "gpsd://localhost"}},
-     r"^cfg.toml: gnss: unknown key 'reciever' \(known: file, origin, receiver, time_offset_s\)$"),
+     r"^cfg.toml: gnss: unknown key 'reciever' \(known: course, file, origin, receiver, time_offset_s\)$"),
     ({"gnss": {"origin": [48.1]}}, r"\[gnss\] origin must be \[LAT, LON\]"),
     ({"gnss": {"origin": [148.1, 11.5]}}, r"latitude within \+-90"),
     ({"gnss": {"origin": "48.1,11.5"}}, r"\[gnss\] origin: expected a list of float"),

@@ -129,7 +129,7 @@ def build_pipeline(cfg: RuntimeConfig, extra_sinks: list | None = None, external
                               steering_ratio=cfg.signals.steering_ratio, initial_pose=initial_pose, sinks=sinks,
                               trt_cache_dir=cfg.model.trt_cache_dir, trt_fp16=cfg.model.trt_fp16,
                               calibration=cfg.calibration.enabled, calibration_file=cfg.calibration.file,
-                              external_gnss=external_gnss)
+                              external_gnss=external_gnss, gnss_course=cfg.gnss.course)
     except BaseException:
         for sink in sinks:
             sink.close()

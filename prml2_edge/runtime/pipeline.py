@@ -146,6 +146,7 @@ class Pipeline:
               model: str | Path | OnnxModel | None = None, threads: int = 1, providers: Sequence[str] = ("cpu",),
               spinning: bool = False,
               fixed_threads: bool = False,
+              gnss_course: bool = True,
               stride: int = DEFAULT_STRIDE, async_inference: bool = False, mu: float = 1.0, stale_periods: float = 3.0,
               driven_axle: str = "front", steering_ratio: float = 15.0,
               initial_pose: InitialPose | None = None, sinks: Sequence = (),
@@ -159,7 +160,8 @@ class Pipeline:
         ``plausibility`` configures the cross-checks of the signals (:mod:`~prml2_edge.runtime.plausibility`;
         default on with the car's ``steering_ratio``, ``PlausibilityConfig(enabled=False)`` turns them off).
         ``driven_axle`` ("front", "rear" or "all") and ``steering_ratio`` describe the car: the filter's wheel cue
-        comes from the axle that does not drive (:class:`LocalizerConfig`).
+        comes from the axle that does not drive (:class:`LocalizerConfig`). ``gnss_course``: a fix's angle is the
+        course over ground (a receiver's), fused with the sideslip taken out; False: it is the car's yaw.
         """
         signal_map, db, dbc_path = load_map_and_dbc(resolve_map(map), dbc)
         if initial_pose is None and signal_map.gnss is None and not external_gnss:
@@ -172,7 +174,7 @@ class Pipeline:
                               spinning=spinning, fixed_threads=fixed_threads)
         cfg = localizer_config or LocalizerConfig(stride=stride, async_inference=async_inference, mu=mu,
                                                   calibration=calibration, driven_axle=driven_axle,
-                                                  steering_ratio=steering_ratio)
+                                                  steering_ratio=steering_ratio, gnss_course_sideslip=gnss_course)
         if plausibility is None:
             plausibility = PlausibilityConfig(steering_ratio=steering_ratio)
         stats = FrameStats()

@@ -222,7 +222,13 @@ def test_deploy_config_with_flag_overrides(repo_root, files, tmp_path):
     assert (pipeline.localizer.config.driven_axle, pipeline.localizer.config.steering_ratio) == ("rear", 14.5)
     assert pipeline.plausibility.config.steering_ratio == 14.5
     assert pipeline.model.threads == 2 and pipeline.model.thread_timing_ms is None  # --fixed-threads: as asked
+    assert pipeline.localizer.config.gnss_course_sideslip  # deploy/runtime.toml: [gnss] course = true
     pipeline.close()
+    from dataclasses import replace
+
+    yaw = build_pipeline(replace(cfg, gnss=replace(cfg.gnss, course=False)))  # fixes from an INS: the car's yaw
+    assert not yaw.localizer.config.gnss_course_sideslip
+    yaw.close()
     pinned = config_from_args(parser.parse_args(["--model", str(model)]))
     from dataclasses import replace
 
