@@ -10,7 +10,7 @@ The drives' seeds are not the benchmark dataset's: the shipped model never saw t
 
 ``--case highway`` is what a real production car looks like instead (issue 28): every simulated car,
 a highway drive that starts at speed and never stops, an uncalibrated CAN yaw-rate offset
-(``--yaw-offset-dps``, default -0.4), and consumer-grade GNSS (``--gnss-std-m`` 1.5 m, 1 deg heading,
+(``--yaw-offset-dps``, default -0.4), and consumer-grade GNSS (``--gnss-std-m`` 1.5 m, course over ground to 1 deg,
 10 Hz) from t = 0 for ``--gnss-s`` seconds, given as a TUM file to ``prml2 replay --gnss`` (the CLI
 itself runs, in this process). Reported per car: genuine fixes refused (the check, the gate and
 the start-up check; target 0), the yaw-offset estimate at the outage against the truth, and the
@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from prml2_edge.bench.machine import machine_info
-from prml2_edge.can.encode import encode_drive_to_log
+from prml2_edge.can.encode import course_over_ground, encode_drive_to_log
 from prml2_edge.data.revsted import write_drive_csv
 from prml2_edge.data.simulate import CARS, simulate_drive
 from prml2_edge.runtime.demo import compare_with_truth
@@ -63,14 +63,16 @@ def replay(log: Path, drive, calibration: bool) -> dict:
 
 
 def write_fixes(drive, path: Path, seconds: float, std_m: float, heading_std_deg: float, seed: int) -> int:
-    """Consumer-grade fixes of ``drive``'s true pose at 10 Hz for the first ``seconds``, as a TUM file."""
+    """Consumer-grade fixes of ``drive``'s true position at 10 Hz for the first ``seconds``, as a TUM file whose
+    angle is the course over ground (what a receiver gives, not the car's yaw)."""
     rng = np.random.default_rng([seed, 7])
+    course = course_over_ground(drive)
     n = 0
     with open(path, "w") as f:
         for k in range(0, min(len(drive.t_s), int(round(seconds * 50))), 5):
-            x, y, psi = drive.pose_gt[k]
+            x, y, _ = drive.pose_gt[k]
             f.write(tum_line(float(drive.t_s[k]), x + rng.normal(0, std_m), y + rng.normal(0, std_m),
-                             psi + math.radians(rng.normal(0, heading_std_deg))))
+                             float(course[k]) + math.radians(rng.normal(0, heading_std_deg))))
             n += 1
     return n
 
