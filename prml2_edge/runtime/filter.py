@@ -145,6 +145,8 @@ class PoseFilter:
         self._gnss_rejects_in_row = 0
         self._prev_fix: tuple[GnssFix, float] | None = None  # the last fix and the wheel speed then
         self._confirmed = True  # a GNSS start is provisional until two consecutive fixes agree
+        self._heading_provisional = False  # the start's heading came from no course while driving
+        self._last_seen_fix: GnssFix | None = None  # the last fix offered to the filter (_follows_last_fix)
         self._still_since: float | None = None
         self._odo_anchor: tuple[float, np.ndarray] | None = None  # (t, fix position) the wheel distance is from
         self._odo = np.zeros(2)  # wheel displacement since the anchor, world frame, along the filter's heading
@@ -329,6 +331,10 @@ class PoseFilter:
         if pose is None and fix is not None and self._wheels_known(valid):
             self.fix_noise.add(fix.t_s, fix.x_m, fix.y_m)
             pose = InitialPose.from_gnss(fix, self.gnss_std_m, self.config.gnss_heading_std_deg)
+            # parked, a receiver's course is the last one it saw or noise: taken for now, replaced by the first
+            # course while driving (_reseat_heading)
+            moving = self._wheel_speed(values, valid) >= self.config.gnss_heading_min_speed_mps
+            self._heading_provisional = not (moving and fix.heading_deg is not None)
             self._confirmed = not self.config.gnss_init_check
             self._prev_fix = (fix, self._wheel_speed(values, valid))
         if pose is None:
@@ -489,6 +495,32 @@ class PoseFilter:
 
     # ---- GNSS ---------------------------------------------------------------------------------------
 
+    def _follows_last_fix(self, fix: GnssFix, speed: float) -> bool:
+        """Whether ``fix`` lies where the fix before it and the car's speed put it (the start-up check's rule): a
+        stray or random frame does not. Remembers ``fix`` for the next call."""
+        cfg = self.config
+        last, self._last_seen_fix = self._last_seen_fix, fix
+        if last is None or not 0.0 < fix.t_s - last.t_s <= cfg.gnss_init_max_gap_s:
+            return False
+        dt = fix.t_s - last.t_s
+        moved = math.hypot(fix.x_m - last.x_m, fix.y_m - last.y_m)
+        slack = cfg.gnss_gate_sigma * math.sqrt(2.0) * self.gnss_std_m + cfg.gnss_init_speed_tol_mps * dt
+        return abs(moved - speed * dt) <= slack
+
+    def _reseat_heading(self, angle: float, var: float, course: bool) -> None:
+        """The first course while driving (from a fix where the fix before it and the speed put it) after a start
+        whose heading was a parked receiver's (stale, or noise) or none: the yaw is set from it (less the filter's
+        sideslip) with the fix's variance, uncorrelated with the rest, instead of being gated against a heading
+        nobody measured."""
+        x, p = self.ekf.x, self.ekf.P  # type: ignore[union-attr]
+        beta = course_measurement(x)[0] - float(x[_YAW]) if course else 0.0
+        x[_YAW] = float(x[_YAW]) + float(wrap_angle(angle - beta - float(x[_YAW])))
+        p[_YAW, :] = 0.0
+        p[:, _YAW] = 0.0
+        p[_YAW, _YAW] = var
+        self._heading_provisional = False
+        self.gnss_check.reset()  # its odometry since the start ran along the stale heading
+
     def _angle_plausible(self, angle: float, var: float, course: bool) -> bool:
         """A fix's heading (or course over ground) within the innovation gate of the filter's prediction of it."""
         x, p = self.ekf.x, self.ekf.P  # type: ignore[union-attr]
@@ -518,6 +550,10 @@ class PoseFilter:
             yaw_var = math.radians(cfg.gnss_heading_std_deg) ** 2
         else:
             psi = None
+        follows = self._follows_last_fix(fix, math.hypot(vx, vy))
+        if psi is not None and yaw_var is not None and self._heading_provisional and follows:
+            self._reseat_heading(psi, yaw_var, course)  # before the checks: they would judge it by a stale heading
+            self.gnss_check.fix_std_m = std_m
         m2 = self._mahalanobis(pos)
         ekf = self.ekf
         rate_std, converged = self._yaw_rate_std()

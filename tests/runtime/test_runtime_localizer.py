@@ -140,6 +140,34 @@ def test_physics_guard_bounds_what_the_filter_consumes(tmp_path, drive):
     assert loc.guard_stats.n_predictions == len(drive) - L + 1 and loc.guard_stats.n_fired == fast.sum()
 
 
+def test_a_parked_start_does_not_take_the_receivers_course_as_the_yaw(model_path):
+    """Parked, a receiver's course is stale or noise (here 90 deg off the car): the start takes the fix's position
+    only, and the first course while driving sets the heading."""
+    d = simulate_drive(1.0, 0.9, 5, "mixed", name="parked_start")
+    first_moving = int(np.argmax(d.z_gt[:, schema.Z.V_X] > 3.0))
+    assert first_moving > 50  # the drive starts parked
+
+    def run(stale_course: bool) -> np.ndarray:
+        loc = StreamingLocalizer(OnnxModel(model_path))
+        valid = np.ones(schema.NUM_SIGNALS, dtype=bool)
+        yaw = []
+        for i in range(first_moving + 100):
+            fix = None
+            if i % 5 == 0:
+                x, y, psi = d.pose_gt[i]
+                vx, vy = d.z_gt[i, schema.Z.V_X], d.z_gt[i, schema.Z.V_Y]
+                moving = np.hypot(vx, vy) >= 2.0
+                course = psi + np.arctan2(vy, vx) if moving else psi + (np.pi / 2 if stale_course else 0.0)
+                fix = GnssFix(i * schema.DT_S, float(x), float(y), psi_rad_to_heading_deg(float(course)), True)
+            out = loc.step(d.onboard[i], valid, i * schema.DT_S, fix)
+            yaw.append(out.x[EkfState.YAW.start] if out.x is not None else np.nan)
+        return np.degrees(np.abs(np.angle(np.exp(1j * (np.array(yaw) - d.pose_gt[:len(yaw), 2])))))
+
+    err = run(stale_course=True)
+    assert err[first_moving + 50:].max() < 3.0, err[first_moving + 50:].max()  # 1 s after moving off
+    assert run(stale_course=False)[first_moving + 50:].max() < 3.0
+
+
 def test_a_stray_first_fix_is_replaced_by_the_next(model_path, drive):
     """A spoofed fix 300 m off, then true ones: the start is provisional until two fixes agree with each
     other and the wheels; the disagreeing second fix restarts the filter at once (not after 20 gated fixes)."""
