@@ -39,12 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from prml2_edge import schema
-from prml2_edge.ekf.numpy_ekf import (
-    CalibrationNoise,
-    CalibrationStd,
-    Ekf,
-    StepStatus,
-)
+from prml2_edge.ekf.numpy_ekf import CalibrationNoise, CalibrationStd, Ekf, StepStatus
 from prml2_edge.runtime.estimator import Estimate
 from prml2_edge.runtime.filter_gnss import GnssFusion
 from prml2_edge.runtime.gnss_check import FixNoise, GnssCheck, GnssCheckConfig
@@ -452,7 +447,7 @@ class PoseFilter(GnssFusion):
         self.n_standstill_updates += int(status is StepStatus.SUCCESS)
         return status is StepStatus.SUCCESS
 
-    # ---- GNSS ---------------------------------------------------------------------------------------
+    # ---- GNSS: runtime/filter_gnss.py (GnssFusion) ---------------------------------------------------
 
     # ---- reporting ----------------------------------------------------------------------------------
 
