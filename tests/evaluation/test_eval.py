@@ -301,6 +301,33 @@ def test_a_filter_override_wins_over_the_protocols_receiver_settings(tiny):
     assert not np.array_equal(no_heading.pose, with_heading.pose)
 
 
+def test_the_deployment_fixes_carry_the_course_over_ground(tiny):
+    """A single-antenna receiver gives the direction of travel, not the yaw: each of the protocol's fixes is the
+    true course psi + atan2(v_y, v_x) plus its drawn noise (the generator redrawn with the task's seed)."""
+    import zlib
+
+    from prml2_edge.evaluation.protocol import simulated_fixes
+    from prml2_edge.schema import heading_deg_to_psi_rad
+
+    data, _ = tiny
+    task = split_tasks(load_dataset(data), "test", WINDOW_S, preroll_s=2.0)[0]
+    rng = np.random.default_rng(zlib.crc32(task.key.encode()))
+    beta, checked = [], 0
+    for row, fix in sorted(simulated_fixes(task).items()):
+        j = row - task.history
+        rng.normal(0.0, 1.5, 2)  # the position's noise
+        noise = math.radians(rng.normal(0.0, 2.0))
+        if fix.heading_deg is None:
+            continue
+        vx, vy = task.pre_z_gt[j, 0], task.pre_z_gt[j, 1]
+        course = task.pre_pose_gt[j, 2] + math.atan2(vy, vx)
+        err = math.remainder(heading_deg_to_psi_rad(fix.heading_deg) - course - noise, 2 * math.pi)
+        assert abs(err) < 1e-7 and fix.course
+        beta.append(abs(math.atan2(vy, vx)))
+        checked += 1
+    assert checked >= 10 and max(beta) > 1e-5  # the sideslip (100x the tolerance) tells the course from the yaw
+
+
 def test_filter_override_parses_a_field_and_says_what_is_wrong_in_one_line():
     from prml2_edge.evaluation.protocol import filter_override
 
