@@ -364,11 +364,8 @@ class PoseFilter(GnssFusion):
         dt = fix.t_s - last.t_s
         if not 0.0 < dt <= cfg.gnss_init_max_gap_s:
             return True  # nothing to compare with: keep the provisional start, check the next pair
-        moved = math.hypot(fix.x_m - last.x_m, fix.y_m - last.y_m)
-        expected = 0.5 * (speed + last_speed) * dt
         self.fix_noise.add(fix.t_s, fix.x_m, fix.y_m)
-        slack = cfg.gnss_gate_sigma * math.sqrt(2.0) * self.gnss_std_m + cfg.gnss_init_speed_tol_mps * dt
-        if abs(moved - expected) <= slack:
+        if self._follows(last, fix, 0.5 * (speed + last_speed)):
             self._confirmed = True
             return True
         self.n_gnss_init_rejected += 1

@@ -62,17 +62,22 @@ class GnssFusion:
             self._odo_anchor = (t_s, pos)
             self._odo = np.zeros(2)
 
-    def _follows_last_fix(self, fix: GnssFix, speed: float) -> bool:
-        """Whether ``fix`` lies where the fix before it and the car's speed put it (the start-up check's rule): a
-        stray or random frame does not. Remembers ``fix`` for the next call."""
+    def _follows(self, last: GnssFix, fix: GnssFix, speed: float) -> bool:
+        """Whether ``fix`` lies where ``last`` and the car's mean ``speed`` [m/s] since put it, within the GNSS noise
+        of both and ``gnss_init_speed_tol_mps`` (the start-up check's rule, and the heading re-seat's)."""
         cfg = self.config
-        last, self._last_seen_fix = self._last_seen_fix, fix
-        if last is None or not 0.0 < fix.t_s - last.t_s <= cfg.gnss_init_max_gap_s:
-            return False
         dt = fix.t_s - last.t_s
         moved = math.hypot(fix.x_m - last.x_m, fix.y_m - last.y_m)
         slack = cfg.gnss_gate_sigma * math.sqrt(2.0) * self.gnss_std_m + cfg.gnss_init_speed_tol_mps * dt
         return abs(moved - speed * dt) <= slack
+
+    def _follows_last_fix(self, fix: GnssFix, speed: float) -> bool:
+        """Whether ``fix`` lies where the fix before it (within ``gnss_init_max_gap_s``) and the car's speed put it:
+        a stray or random frame does not. Remembers ``fix`` for the next call."""
+        last, self._last_seen_fix = self._last_seen_fix, fix
+        if last is None or not 0.0 < fix.t_s - last.t_s <= self.config.gnss_init_max_gap_s:
+            return False
+        return self._follows(last, fix, speed)
 
     def _reseat_heading(self, angle: float, var: float, course: bool) -> None:
         """The first course while driving (from a fix where the fix before it and the speed put it) after a start
