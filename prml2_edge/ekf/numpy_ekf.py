@@ -575,13 +575,14 @@ def update_pose(
     if yaw_rad is not None:
         if yaw_var is None:
             raise ValueError("yaw_var is required with yaw_rad")
-        if course:
-            return _update_course(x, P, pos_xy, var, float(yaw_rad), float(yaw_var))
         idx = np.append(_POS_IDX, _YAW)
-        innovation = np.append(innovation, wrap_angle(float(yaw_rad) - x[_YAW]))
         var = np.append(var, float(yaw_var))
     if not np.all(var > 0.0):
         raise ValueError("pose variances must be > 0")
+    if yaw_rad is not None and course:
+        return _update_course(x, P, pos_xy, var, float(yaw_rad))
+    if yaw_rad is not None:
+        innovation = np.append(innovation, wrap_angle(float(yaw_rad) - x[_YAW]))
     return _update_selected(x, P, idx, innovation, var)
 
 
@@ -596,17 +597,15 @@ def course_measurement(x: np.ndarray) -> tuple[float, np.ndarray]:
     return float(x[_YAW]) + math.atan2(vy, vx), h
 
 
-def _update_course(x: np.ndarray, P: np.ndarray, pos_xy: np.ndarray, pos_var: np.ndarray, course_rad: float,
-                   course_var: float) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`update_pose` with a course over ground: position rows select, the course row is linearised."""
+def _update_course(x: np.ndarray, P: np.ndarray, pos_xy: np.ndarray, var: np.ndarray,
+                   course_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`update_pose` with a course over ground (``var``: the two position variances and the course's):
+    position rows select, the course row is linearised."""
     pred, row = course_measurement(x)
     h = np.zeros((3, x.shape[0]))
     h[0, _PX] = h[1, _PY] = 1.0
     h[2] = row
     innovation = np.append(pos_xy - x[_POS_IDX], wrap_angle(course_rad - pred))
-    var = np.append(pos_var, course_var)
-    if not np.all(var > 0.0):
-        raise ValueError("pose variances must be > 0")
     with np.errstate(invalid="ignore"):
         return _update_linear(x, P, h, innovation, var)
 
