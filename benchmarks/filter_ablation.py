@@ -103,6 +103,10 @@ NO_SLIP_ROW = "the default without the low-μ slip uncertainty"
 REAR_CUE = ("driven_axle", "front")  # the wheel cue from the rear axle on every car (as before: a RWD car's driven one)
 REAR_CUE_ROW = "the default with the rear-axle wheel cue on every car"
 NO_SCALE_HISTORY_ROW = "the default without the wheel scale from the unit's earlier drives"
+QUANT_12 = ("yaw_cue_quant_gain", 12.0)  # the yaw cue's sigma 12 x its step, the default before the course fixes
+QUANT_12_ROW = "the default with the yaw cue's sigma 12 × its step (before)"
+COURSE_AS_YAW = ("gnss_course_sideslip", False)  # a fix's course fused as the yaw (deployment protocol only)
+COURSE_AS_YAW_ROW = "the default fusing the GNSS course as the yaw"
 GAIN_RESIDUAL = 0.003  # the gain known to 0.3 % (1 sigma)
 BOUNDS = {"bound: OSD, the drive's gyro gain known": (OSD, 0.0),
           "bound: the default, the drive's gyro gain known": (HELD, 0.0),
@@ -132,7 +136,9 @@ def variants(model: str) -> dict[str, ModelSpec]:
             NO_LOW_MU_ROW: replace(cal, filter=(NO_LOW_MU,)),
             NO_SLIP_ROW: replace(cal, filter=(NO_SLIP,)),
             REAR_CUE_ROW: replace(cal, filter=(REAR_CUE,)),
-            NO_SCALE_HISTORY_ROW: replace(cal, wheel_scale_history=False)}
+            NO_SCALE_HISTORY_ROW: replace(cal, wheel_scale_history=False),
+            QUANT_12_ROW: replace(cal, filter=(QUANT_12,)),
+            COURSE_AS_YAW_ROW: replace(cal, filter=(COURSE_AS_YAW,))}
 
 
 PROTOCOLS = {"paper": 0.0, "deployment": DEPLOYMENT_PREROLL_S}

