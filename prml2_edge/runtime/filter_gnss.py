@@ -116,7 +116,7 @@ class GnssFusion:
         pos = np.array([fix.x_m + (c * vx - s * vy) * lag_s, fix.y_m + (s * vx + c * vy) * lag_s])
         psi = fix.psi_rad
         yaw_var = None
-        course = bool(fix.course and cfg.gnss_course_sideslip)
+        course = cfg.gnss_course_sideslip
         if psi is not None and math.hypot(vx, vy) >= cfg.gnss_heading_min_speed_mps:
             psi += x[_OMEGA] * lag_s
             yaw_var = math.radians(cfg.gnss_heading_std_deg) ** 2

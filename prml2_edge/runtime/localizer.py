@@ -54,8 +54,8 @@ class LocalizerConfig:
     gnss_pos_std_m: float = 0.5  # one-sigma GNSS position noise per axis
     gnss_heading_std_deg: float = 2.0  # one-sigma GNSS heading noise
     gnss_heading_min_speed_mps: float = 2.0  # below this speed a GNSS heading is not fused
-    # A fix's angle marked as the course over ground (GnssFix.course: NMEA, gpsd, the bus) is fused as
-    # psi + atan2(v_y, v_x), the sideslip taken out; False fuses it as the car's yaw (before issue 26's realism pass).
+    # A fix's angle is the course over ground (NMEA RMC, gpsd's track, the bus), fused as psi + atan2(v_y, v_x),
+    # the sideslip taken out; False fuses it as the car's yaw (an INS; [gnss] course = false).
     gnss_course_sideslip: bool = True
     gnss_timeout_s: float = 0.5  # no fix for longer: GNSS outage (dead reckoning)
     fuse_gnss: bool = True

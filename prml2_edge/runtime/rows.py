@@ -21,9 +21,8 @@ class GnssFix:
 
     ``x_m`` east [m], ``y_m`` north [m], ``heading_deg`` true heading clockwise from north
     [deg] (None when the map has no heading signal). ``t_s`` is the frame's timestamp [s].
-    ``course``: the angle is the course over ground (the direction of travel: NMEA RMC, gpsd's ``track``, a
-    receiver on the bus; a ``--gnss`` CSV or TUM file's angle is taken as one too), which differs from the car's
-    yaw by its sideslip angle; False where it is the yaw itself.
+    The angle is what a single-antenna receiver gives, the course over ground (NMEA RMC, gpsd's ``track``, a
+    ``--gnss`` CSV or TUM file), unless the runtime config says it is the yaw (``[gnss] course = false``).
     """
 
     t_s: float
@@ -31,7 +30,6 @@ class GnssFix:
     y_m: float
     heading_deg: float | None
     valid: bool
-    course: bool = True
 
     @property
     def psi_rad(self) -> float | None:
