@@ -19,6 +19,8 @@ import json
 import math
 from dataclasses import asdict, dataclass
 
+import numpy as np
+
 SAMPLE_RATE_HZ = 50.0  # onboard vector o_t rate
 DT_S = 1.0 / SAMPLE_RATE_HZ  # 0.02 s
 G_MPS2 = 9.80665  # standard gravity
@@ -183,6 +185,13 @@ def heading_deg_to_psi_rad(heading_deg: float) -> float:
     """True heading clockwise from north [deg] -> psi counter-clockwise from east [rad], wrapped to (-pi, pi]."""
     psi = heading_deg_to_psi(heading_deg)
     return math.atan2(math.sin(psi), math.cos(psi))
+
+
+def course_over_ground(psi, v_x, v_y):
+    """The direction of travel [rad, the EKF's convention], ``psi + atan2(v_y, v_x)``: what a single-antenna GNSS
+    receiver reports as its course (NMEA RMC, gpsd's ``track``), the yaw plus the sideslip angle. Not wrapped;
+    floats and NumPy arrays alike."""
+    return psi + np.arctan2(v_y, v_x)
 
 
 def psi_rad_to_heading_deg(psi_rad):

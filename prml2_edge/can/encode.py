@@ -301,7 +301,7 @@ def course_over_ground(drive) -> np.ndarray:
         return psi
     vx, vy = z[:, schema.Z.V_X], z[:, schema.Z.V_Y]
     moving = np.isfinite(vx) & np.isfinite(vy) & (np.hypot(vx, vy) >= 0.5)
-    return np.where(moving, psi + np.arctan2(np.where(moving, vy, 0.0), np.where(moving, vx, 1.0)), psi)
+    return np.where(moving, schema.course_over_ground(psi, np.where(moving, vx, 1.0), np.where(moving, vy, 0.0)), psi)
 
 
 def _encode_gnss(msg, gnss, pose_row: np.ndarray, course_rad: float) -> bytes:

@@ -226,7 +226,7 @@ def simulated_fixes(task: WindowTask) -> dict[int, object]:
         noise = rng.normal(0.0, GNSS_POS_STD_M, 2)
         vx, vy = (float(v) for v in task.pre_z_gt[j, Z.VEL])
         moving = math.hypot(vx, vy) >= GNSS_HEADING_MIN_SPEED_MPS
-        course = float(psi) + math.atan2(vy, vx)
+        course = float(schema.course_over_ground(float(psi), vx, vy))
         heading = psi_rad_to_heading_deg(course + math.radians(rng.normal(0.0, GNSS_HEADING_STD_DEG)))
         fixes[task.history + j] = GnssFix(t_s=float((task.history + j) * schema.DT_S), x_m=float(x + noise[0]),
                                           y_m=float(y + noise[1]), heading_deg=heading if moving else None,
