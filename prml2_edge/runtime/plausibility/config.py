@@ -64,10 +64,6 @@ class PlausibilityConfig:
     wheel_yaw_max_accel_mps2: float = 2.5  # the wheel pairs estimate the rotation below this |a_x| ...
     wheel_yaw_slip: float = 0.001  # ... with an uncertainty of this times |a_x a_y| v / track (left/right slip)
     learned_sd: bool = True  # ... plus the uncertainty of the pair's learned track and radius difference
-    # Next to a gyro this coarse, the wheel pairs keep their track at its prior and learn only their radius
-    # difference: a reading rounded by as much as a gentle bend's yaw rate biases a learned track toward 0
-    # (ReV-StED-like 1.28 deg/s steps on a highway: 0.55-0.65 m, and the pairs then flag a clean gyro).
-    pair_track_coarse_radps: float = 0.2 * _DEG
     ay_check_max_mps2: float = 6.0  # rotation relations are linear below this lateral acceleration
     stuck_hold_s: float = 0.5
     dropout_tol: float = 4.0  # a signal reading 0 this many tolerances from its prediction is flagged at once

@@ -330,26 +330,16 @@ class Relations:
         if not calm:
             return
         wy = x[YAW]
-        coarse = self.resolution(YAW) >= cfg.pair_track_coarse_radps
         if grip and ok[RL] and ok[RR]:
-            self._learn_pair(self.rear, wy, v, x[RR] - x[RL], 0.02 ** 2, coarse)
+            self.rear.update([wy, v], x[RR] - x[RL], 0.02 ** 2)
         if grip and ok[FL] and ok[FR]:
-            self._learn_pair(self.front, wy * cos_front, v, x[FR] - x[FL], 0.03 ** 2, coarse)
+            self.front.update([wy * cos_front, v], x[FR] - x[FL], 0.03 ** 2)
         if ok[AY] and abs(x[AY]) < 3.0:
             self.ay_offset.update(x[AY] - v * wy)
         if ok[SW] and abs(x[AY] if valid[AY] else v * wy) < 4.0:
             self.steer.update([1.0, wy / v, wy * v], x[SW], (2.0 * _DEG) ** 2)
             if abs(wy) > 2.0 * _DEG:
                 self.turning_s += dt
-
-    def _learn_pair(self, pair, wy: float, v: float, diff: float, noise_var: float, coarse: bool) -> None:
-        """One wheel pair's row: ``diff = track * wy + eps * v``. Next to a coarse gyro only ``eps`` is learned, the
-        track held, and the reading's rounding (a uniform error of one step) counts as noise."""
-        if not coarse:
-            pair.update([wy, v], diff, noise_var)
-            return
-        res = self.resolution(YAW)
-        pair.update([0.0, v], diff - pair.theta[0] * wy, noise_var + (pair.theta[0] * res) ** 2 / 12.0)
 
     # ---- 3. brake ----------------------------------------------------------------------------------------
 
