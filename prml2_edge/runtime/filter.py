@@ -150,6 +150,7 @@ class PoseFilter(GnssFusion):
         self.yaw_resolution_radps = float(self.config.yaw_cue_resolution_radps)
         self._yaw_cue_var = self._yaw_var()
         self._resolution_measured = False
+        self._min_yaw_step = math.inf  # the smallest step between distinct readings so far
         self.n_gnss_rejected = 0  # fixes refused by the innovation gate
         self.n_gnss_suspect = 0  # fixes not fused because the odometry contradicts the fix stream
         self.n_gnss_init_rejected = 0  # first fixes that the next fix or the wheels contradicted
@@ -208,7 +209,7 @@ class PoseFilter(GnssFusion):
         skip_model = still and self.config.standstill_skips_model
         z_var = est.z_var
         infl = self.omega_var_inflation
-        coarse = self._resolution_measured and self.yaw_resolution_radps >= self.config.coarse_yaw_resolution_radps
+        coarse = self._coarse_gyro
         if coarse:
             infl = self.omega_var_inflation_coarse
         if self.calibrated and z_var is not None and infl != 1.0:
@@ -375,12 +376,22 @@ class PoseFilter(GnssFusion):
     def _yaw_var(self) -> float:
         return yaw_cue_var(self.config, self.yaw_resolution_radps)
 
+    @property
+    def _coarse_gyro(self) -> bool:
+        """The CAN yaw rate is coarse: its measured resolution, or (``coarse_until_fine_step``) until measured every
+        step it has taken, at least ``coarse_yaw_resolution_radps``."""
+        threshold = self.config.coarse_yaw_resolution_radps
+        if self._resolution_measured:
+            return self.yaw_resolution_radps >= threshold
+        return self.config.coarse_until_fine_step and self._min_yaw_step >= threshold
+
     def _track_resolution(self, yaw: float) -> None:
         """The yaw-rate signal's resolution from the steps between successive distinct readings."""
         last, self._yaw_last = self._yaw_last, yaw
         if last is None or yaw == last:
             return
         self._yaw_steps.append(abs(yaw - last))
+        self._min_yaw_step = min(self._min_yaw_step, abs(yaw - last))
         if len(self._yaw_steps) == _RESOLUTION_WINDOW:
             self.yaw_resolution_radps = float(np.percentile(self._yaw_steps, 10))
             self._resolution_measured = True

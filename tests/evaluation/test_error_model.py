@@ -173,15 +173,15 @@ def test_a_calibrated_gyro_keeps_the_heading_when_the_model_has_a_slow_bias():
     assert heading < 0.2 and abs(learned - 0.4) < 0.01, (heading, learned)
 
 
-def _coarse_gyro_heading_error_dps(cfg: LocalizerConfig) -> float:
-    """A 0.5 deg/s CAN yaw rate: for 5 s it toggles between 0 and 0.5 deg/s (the truth 0.25, and the resolution gets
-    measured), then reads 0 for 25 s while the car turns at 0.2 deg/s (quantisation error: slow, not white). The
-    model says the truth with 0.1 deg/s. Final heading error [deg]."""
+def _coarse_gyro_heading_error_dps(cfg: LocalizerConfig, every: int = 1) -> float:
+    """A 0.5 deg/s CAN yaw rate: for 5 s it toggles between 0 and 0.5 deg/s every ``every`` rows (the truth 0.25;
+    every row: the resolution gets measured), then reads 0 for 25 s while the car turns at 0.2 deg/s (quantisation
+    error: slow, not white). The model says the truth with 0.1 deg/s. Final heading error [deg]."""
     onboard, x0 = _straight_with_gyro_offset(0.0, 30.0)
     yaw = schema.SIGNAL_BY_NAME["yaw_rate_radps"].index
     start = schema.WINDOW_LEN - 1
     toggle = np.arange(len(onboard)) < start + int(5.0 / DT)
-    onboard[:, yaw] = np.where(toggle & (np.arange(len(onboard)) % 2 == 1), math.radians(0.5), 0.0)
+    onboard[:, yaw] = np.where(toggle & ((np.arange(len(onboard)) // every) % 2 == 1), math.radians(0.5), 0.0)
     truth = np.where(toggle, math.radians(0.25), math.radians(0.2))
     rows = np.arange(start, len(onboard))  # stride 1: call i is row start + i
     model = _SlowYawErrorModel(truth[rows] - onboard[rows, yaw], 249.0)
@@ -198,6 +198,16 @@ def test_next_to_a_coarse_gyro_the_model_carries_the_yaw_rate():
     coarse = _coarse_gyro_heading_error_dps(LocalizerConfig())
     fine_rule = _coarse_gyro_heading_error_dps(LocalizerConfig(coarse_yaw_resolution_radps=math.inf))
     assert fine_rule > 2.5 and coarse < 0.33 * fine_rule, (coarse, fine_rule)
+
+
+def test_a_coarse_gyro_can_count_as_coarse_before_its_resolution_is_measured():
+    """The same gyro toggling only every second (5 steps, far from the 200 a measurement needs; a 1.28 deg/s gyro on
+    mild roads often takes a minute): by default it counts as fine until measured, so nothing carries the yaw rate
+    and the heading drifts as with the fine-gyro rule; with ``coarse_until_fine_step`` every step so far was coarse,
+    so the model carries it."""
+    fine_until = _coarse_gyro_heading_error_dps(LocalizerConfig(), every=50)
+    coarse_until = _coarse_gyro_heading_error_dps(LocalizerConfig(coarse_until_fine_step=True), every=50)
+    assert fine_until > 2.5 and coarse_until < 0.5 * fine_until, (coarse_until, fine_until)
 
 
 def test_next_to_a_coarse_gyro_the_model_is_held_inside_the_readings_interval():
