@@ -150,7 +150,9 @@ class PoseFilter(GnssFusion):
         self.yaw_resolution_radps = float(self.config.yaw_cue_resolution_radps)
         self._yaw_cue_var = self._yaw_var()
         self._resolution_measured = False
-        self._min_yaw_step = math.inf  # the smallest step between distinct readings so far
+        # the CAN yaw rate is coarse: its measured resolution, or (coarse_until_fine_step) until measured every step
+        # it has taken, at least coarse_yaw_resolution_radps (kept up to date by _track_resolution)
+        self._coarse_gyro = bool(self.config.coarse_until_fine_step)
         self.n_gnss_rejected = 0  # fixes refused by the innovation gate
         self.n_gnss_suspect = 0  # fixes not fused because the odometry contradicts the fix stream
         self.n_gnss_init_rejected = 0  # first fixes that the next fix or the wheels contradicted
@@ -376,25 +378,19 @@ class PoseFilter(GnssFusion):
     def _yaw_var(self) -> float:
         return yaw_cue_var(self.config, self.yaw_resolution_radps)
 
-    @property
-    def _coarse_gyro(self) -> bool:
-        """The CAN yaw rate is coarse: its measured resolution, or (``coarse_until_fine_step``) until measured every
-        step it has taken, at least ``coarse_yaw_resolution_radps``."""
-        threshold = self.config.coarse_yaw_resolution_radps
-        if self._resolution_measured:
-            return self.yaw_resolution_radps >= threshold
-        return self.config.coarse_until_fine_step and self._min_yaw_step >= threshold
-
     def _track_resolution(self, yaw: float) -> None:
         """The yaw-rate signal's resolution from the steps between successive distinct readings."""
         last, self._yaw_last = self._yaw_last, yaw
         if last is None or yaw == last:
             return
-        self._yaw_steps.append(abs(yaw - last))
-        self._min_yaw_step = min(self._min_yaw_step, abs(yaw - last))
+        step = abs(yaw - last)
+        self._yaw_steps.append(step)
+        if step < self.config.coarse_yaw_resolution_radps and not self._resolution_measured:
+            self._coarse_gyro = False  # a fine step: not coarse until measured otherwise
         if len(self._yaw_steps) == _RESOLUTION_WINDOW:
             self.yaw_resolution_radps = float(np.percentile(self._yaw_steps, 10))
             self._resolution_measured = True
+            self._coarse_gyro = self.yaw_resolution_radps >= self.config.coarse_yaw_resolution_radps
             self._yaw_steps.clear()
             self._yaw_cue_var = self._yaw_var()
 
