@@ -107,6 +107,8 @@ QUANT_12 = ("yaw_cue_quant_gain", 12.0)  # the yaw cue's sigma 12 x its step, th
 QUANT_12_ROW = "the default with the yaw cue's sigma 12 × its step (before)"
 COURSE_AS_YAW = ("gnss_course_sideslip", False)  # a fix's course fused as the yaw (deployment protocol only)
 COURSE_AS_YAW_ROW = "the default fusing the GNSS course as the yaw"
+FINE_UNTIL = ("coarse_until_fine_step", False)  # a coarse gyro counts as fine until 200 readings measure it
+FINE_UNTIL_ROW = "the default counting a gyro fine until its resolution is measured (before)"
 GAIN_RESIDUAL = 0.003  # the gain known to 0.3 % (1 sigma)
 BOUNDS = {"bound: OSD, the drive's gyro gain known": (OSD, 0.0),
           "bound: the default, the drive's gyro gain known": (HELD, 0.0),
@@ -138,7 +140,8 @@ def variants(model: str) -> dict[str, ModelSpec]:
             REAR_CUE_ROW: replace(cal, filter=(REAR_CUE,)),
             NO_SCALE_HISTORY_ROW: replace(cal, wheel_scale_history=False),
             QUANT_12_ROW: replace(cal, filter=(QUANT_12,)),
-            COURSE_AS_YAW_ROW: replace(cal, filter=(COURSE_AS_YAW,))}
+            COURSE_AS_YAW_ROW: replace(cal, filter=(COURSE_AS_YAW,)),
+            FINE_UNTIL_ROW: replace(cal, filter=(FINE_UNTIL,))}
 
 
 PROTOCOLS = {"paper": 0.0, "deployment": DEPLOYMENT_PREROLL_S}

@@ -150,9 +150,11 @@ class PoseFilter(GnssFusion):
         self.yaw_resolution_radps = float(self.config.yaw_cue_resolution_radps)
         self._yaw_cue_var = self._yaw_var()
         self._resolution_measured = False
-        # the CAN yaw rate is coarse: its measured resolution, or (coarse_until_fine_step) until measured every step
-        # it has taken, at least coarse_yaw_resolution_radps (kept up to date by _track_resolution)
-        self._coarse_gyro = bool(self.config.coarse_until_fine_step)
+        # the CAN yaw rate is coarse: its measured resolution, or (coarse_until_fine_step) until measured the
+        # configured one and every step it has taken, at least coarse_yaw_resolution_radps (kept up to date by
+        # _track_resolution)
+        self._coarse_gyro = bool(self.config.coarse_until_fine_step) \
+            and self.yaw_resolution_radps >= self.config.coarse_yaw_resolution_radps
         self.n_gnss_rejected = 0  # fixes refused by the innovation gate
         self.n_gnss_suspect = 0  # fixes not fused because the odometry contradicts the fix stream
         self.n_gnss_init_rejected = 0  # first fixes that the next fix or the wheels contradicted

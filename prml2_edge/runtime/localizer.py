@@ -128,15 +128,17 @@ class LocalizerConfig:
     model_omega_var_inflation: float | None = 5.0e4
     # ... except next to a coarse CAN yaw rate (its resolution, measured online, at least coarse_yaw_resolution):
     # quantisation error is slow, so there the model's omega_z carries the yaw rate step by step, its variance
-    # times this (None: the metadata's 5 s factor). Until the resolution is measured the gyro counts as fine.
+    # times this (None: the metadata's 5 s factor). Until the resolution is measured: coarse_until_fine_step.
     # Chosen on validation (issue 26, docs/evaluation.md); inf as the threshold turns it off.
     model_omega_var_inflation_coarse: float | None = None
     coarse_yaw_resolution_radps: float = 0.2 * schema.DEG_TO_RAD
-    # True: until the resolution is measured (200 distinct readings: a 1.28 deg/s gyro on mild roads often not in
-    # a minute) the gyro counts as coarse while every step it has taken is at least coarse_yaw_resolution (a fine
-    # one shows a small step within a few samples). False (the default, chosen before this was seen): fine until
-    # measured, so the model is inflated 5e4 and a coarse gyro's cue is weak: nothing carries the yaw rate.
-    coarse_until_fine_step: bool = False
+    # True (the default): until the resolution is measured (200 distinct readings: a 1.28 deg/s gyro on mild roads
+    # often not in a minute) the gyro counts as coarse while yaw_cue_resolution_radps and every step it has taken
+    # are at least coarse_yaw_resolution (a fine one shows a small step within a few samples). False (before):
+    # fine until measured, so the model is inflated 5e4 and a coarse gyro's cue is weak: nothing carries the yaw
+    # rate.
+    # Chosen on validation (issue 26, docs/evaluation.md).
+    coarse_until_fine_step: bool = True
     # ... and there the model's omega_z is held inside what the CAN reading allows: the reading less the offset
     # estimate, +- half a resolution step + this many times yaw_cue_std_radps (None: not held). A model wrong on
     # a road it never saw (snow) can then be no further from the truth than the coarse reading's interval. 3: the
