@@ -242,3 +242,22 @@ def test_next_to_a_coarse_gyro_the_model_is_held_inside_the_readings_interval():
     (free, _), (held, from_centre) = omega_error_dps(None), omega_error_dps(1.0)
     assert free > 2.5 and held < 0.5 * free, (free, held)
     assert from_centre < 0.5 * step + 0.1, from_centre  # inside the interval the reading allows
+
+
+def test_the_resolution_can_be_bounded_by_the_steps_seen_before_it_is_measured():
+    """A 0.5 deg/s gyro that has changed its reading only 10 times (far from the 200 a measurement needs): by default
+    the filter takes the configured 1.28 deg/s until measured; with ``resolution_from_steps`` the smallest step seen,
+    which bounds a quantised signal's resolution from above, so the cue's sigma is 3 x 0.5 deg/s, not 3 x 1.28."""
+    onboard, x0 = _straight_with_gyro_offset(0.0, 12.0)
+    yaw = schema.SIGNAL_BY_NAME["yaw_rate_radps"].index
+    onboard[:, yaw] = np.where((np.arange(len(onboard)) // 50) % 2 == 1, math.radians(0.5), 0.0)
+    model = _SlowYawErrorModel(np.full(len(onboard), math.radians(0.25)) - onboard[:, yaw], 249.0)
+    model.bias = StandstillBias(0.0, 0.0, 100)
+
+    def resolution_dps(cfg: LocalizerConfig) -> float:
+        loc = StreamingLocalizer(model, replace(cfg, stride=1))
+        loc.run_arrays(onboard, x0, start_index=schema.WINDOW_LEN - 1)
+        return math.degrees(loc.filter.yaw_resolution_radps)
+
+    assert resolution_dps(LocalizerConfig()) == pytest.approx(1.28)
+    assert resolution_dps(LocalizerConfig(resolution_from_steps=True)) == pytest.approx(0.5)
