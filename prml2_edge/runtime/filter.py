@@ -387,11 +387,12 @@ class PoseFilter(GnssFusion):
             return
         step = abs(yaw - last)
         self._yaw_steps.append(step)
-        if self.config.resolution_from_steps and not self._resolution_measured and step < self.yaw_resolution_radps:
-            self.yaw_resolution_radps = step  # a quantised signal's every step is a multiple of its resolution
-            self._yaw_cue_var = self._yaw_var()
-        if step < self.config.coarse_yaw_resolution_radps and not self._resolution_measured:
-            self._coarse_gyro = False  # a fine step: not coarse until measured otherwise
+        if not self._resolution_measured:
+            if self.config.resolution_from_steps and step < self.yaw_resolution_radps:
+                self.yaw_resolution_radps = step  # a quantised signal's every step is a multiple of its resolution
+                self._yaw_cue_var = self._yaw_var()
+            if step < self.config.coarse_yaw_resolution_radps:
+                self._coarse_gyro = False  # a fine step: not coarse until measured otherwise
         if len(self._yaw_steps) == _RESOLUTION_WINDOW:
             self.yaw_resolution_radps = float(np.percentile(self._yaw_steps, 10))
             self._resolution_measured = True

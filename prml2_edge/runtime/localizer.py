@@ -136,8 +136,7 @@ class LocalizerConfig:
     # often not in a minute) the gyro counts as coarse while yaw_cue_resolution_radps and every step it has taken
     # are at least coarse_yaw_resolution (a fine one shows a small step within a few samples). False (before):
     # fine until measured, so the model is inflated 5e4 and a coarse gyro's cue is weak: nothing carries the yaw
-    # rate.
-    # Chosen on validation (issue 26, docs/evaluation.md).
+    # rate. Chosen on validation (issue 26, docs/evaluation.md).
     coarse_until_fine_step: bool = True
     # True: until measured, the resolution (the cue's variance, the hold's interval) is the smaller of
     # yaw_cue_resolution_radps and the smallest step between distinct readings so far, which bounds it from above.
