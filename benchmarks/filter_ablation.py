@@ -109,6 +109,8 @@ COURSE_AS_YAW = ("gnss_course_sideslip", False)  # a fix's course fused as the y
 COURSE_AS_YAW_ROW = "the default fusing the GNSS course as the yaw"
 FINE_UNTIL = ("coarse_until_fine_step", False)  # a coarse gyro counts as fine until 200 readings measure it
 FINE_UNTIL_ROW = "the default counting a gyro fine until its resolution is measured (before)"
+CONFIGURED_RES = ("resolution_from_steps", False)  # until measured, the configured 1.28 deg/s, not the steps seen
+CONFIGURED_RES_ROW = "the default taking the configured resolution until it is measured (before)"
 GAIN_RESIDUAL = 0.003  # the gain known to 0.3 % (1 sigma)
 BOUNDS = {"bound: OSD, the drive's gyro gain known": (OSD, 0.0),
           "bound: the default, the drive's gyro gain known": (HELD, 0.0),
@@ -141,7 +143,8 @@ def variants(model: str) -> dict[str, ModelSpec]:
             NO_SCALE_HISTORY_ROW: replace(cal, wheel_scale_history=False),
             QUANT_12_ROW: replace(cal, filter=(QUANT_12,)),
             COURSE_AS_YAW_ROW: replace(cal, filter=(COURSE_AS_YAW,)),
-            FINE_UNTIL_ROW: replace(cal, filter=(FINE_UNTIL,))}
+            FINE_UNTIL_ROW: replace(cal, filter=(FINE_UNTIL,)),
+            CONFIGURED_RES_ROW: replace(cal, filter=(CONFIGURED_RES,))}
 
 
 PROTOCOLS = {"paper": 0.0, "deployment": DEPLOYMENT_PREROLL_S}

@@ -138,10 +138,11 @@ class LocalizerConfig:
     # fine until measured, so the model is inflated 5e4 and a coarse gyro's cue is weak: nothing carries the yaw
     # rate. Chosen on validation (issue 26, docs/evaluation.md).
     coarse_until_fine_step: bool = True
-    # True: until measured, the resolution (the cue's variance, the hold's interval) is the smaller of
+    # True (the default): until measured, the resolution (the cue's variance, the hold's interval) is the smaller of
     # yaw_cue_resolution_radps and the smallest step between distinct readings so far, which bounds it from above.
-    # False (the default): yaw_cue_resolution_radps (1.28 deg/s) until measured, even for a 0.24 deg/s gyro.
-    resolution_from_steps: bool = False
+    # False (before): yaw_cue_resolution_radps (1.28 deg/s) until measured, even for a 0.24 deg/s gyro. Chosen on
+    # validation (issue 26, docs/evaluation.md).
+    resolution_from_steps: bool = True
     # ... and there the model's omega_z is held inside what the CAN reading allows: the reading less the offset
     # estimate, +- half a resolution step + this many times yaw_cue_std_radps (None: not held). A model wrong on
     # a road it never saw (snow) can then be no further from the truth than the coarse reading's interval. 3: the
