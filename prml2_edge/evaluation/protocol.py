@@ -153,7 +153,7 @@ def filter_override(text: str) -> tuple[str, float]:
     name, sep, value = text.partition("=")
     if not sep or name not in {f.name for f in fields(LocalizerConfig)}:
         raise ValueError(f"{text!r}: want FIELD=NUMBER with FIELD a LocalizerConfig field "
-                         "(prml2_edge/runtime/localizer.py)")
+                         "(prml2_edge/runtime/localizer_config.py)")
     try:
         return name, float(value)
     except ValueError:

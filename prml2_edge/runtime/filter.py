@@ -83,7 +83,7 @@ def _front_speed(values: np.ndarray, valid: np.ndarray, steering_ratio: float) -
 
 def yaw_cue_var(config, resolution_radps: float) -> float:
     """The CAN yaw-rate cue's variance [rad^2/s^2]: white noise plus ``yaw_cue_quant_gain`` times the signal's
-    resolution ``resolution_radps``; ``config`` a :class:`~prml2_edge.runtime.localizer.LocalizerConfig`."""
+    resolution ``resolution_radps``; ``config`` a :class:`~prml2_edge.runtime.localizer_config.LocalizerConfig`."""
     return config.yaw_cue_std_radps ** 2 + (config.yaw_cue_quant_gain * resolution_radps) ** 2
 
 
@@ -99,7 +99,7 @@ class FilterStep:
 
 
 class PoseFilter(GnssFusion):
-    """The EKF and everything fused into it; ``config`` is a :class:`~prml2_edge.runtime.localizer.LocalizerConfig`."""
+    """The EKF and everything fused into it; ``config`` is a :class:`~prml2_edge.runtime.localizer_config.LocalizerConfig`."""
 
     def __init__(self, config, process_noise: np.ndarray, initial_pose: InitialPose | None = None,
                  dt_s: float = schema.DT_S) -> None:

@@ -43,7 +43,7 @@ class Car:
                 "sensors": {**asdict(self.sensors), "steps": dict(self.sensors.steps)}}
 
     def filter_settings(self) -> dict:
-        """What a user tells the runtime about this car (:class:`~prml2_edge.runtime.localizer.LocalizerConfig`
+        """What a user tells the runtime about this car (:class:`~prml2_edge.runtime.localizer_config.LocalizerConfig`
         fields): its driven axle and steering ratio."""
         axle = {"fwd": "front", "rwd": "rear", "awd": "all"}[self.params.drivetrain]
         return {"driven_axle": axle, "steering_ratio": float(self.params.steering_ratio)}
