@@ -99,7 +99,8 @@ class FilterStep:
 
 
 class PoseFilter(GnssFusion):
-    """The EKF and everything fused into it; ``config`` is a :class:`~prml2_edge.runtime.localizer_config.LocalizerConfig`."""
+    """The EKF and everything fused into it; ``config`` is a
+    :class:`~prml2_edge.runtime.localizer_config.LocalizerConfig`."""
 
     def __init__(self, config, process_noise: np.ndarray, initial_pose: InitialPose | None = None,
                  dt_s: float = schema.DT_S) -> None:
