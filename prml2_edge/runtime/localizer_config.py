@@ -62,8 +62,9 @@ class LocalizerConfig:
     calibration: bool = True
     # CAN yaw-rate cue noise: white noise plus yaw_cue_quant_gain times the signal's resolution, measured
     # online (the 10th percentile of the steps between successive distinct readings; until measured,
-    # yaw_cue_resolution_radps). Quantisation error is not white: it stays while the yaw rate stays in one
-    # step, so a coarse sensor (ReV-StED: 1.28 deg/s) is down-weighted far more than step / sqrt(12).
+    # yaw_cue_resolution_radps, or the smallest step seen if smaller: resolution_from_steps). Quantisation error
+    # is not white: it stays while the yaw rate stays in one step, so a coarse sensor (ReV-StED: 1.28 deg/s) is
+    # down-weighted far more than step / sqrt(12).
     # The gain was chosen on the validation splits with course-over-ground fixes (docs/evaluation.md): 3, where
     # the cue's variance matches its measured error on the coarse sensors (12 stated it 7-20 x too large).
     yaw_cue_std_radps: float = 0.1 * schema.DEG_TO_RAD
