@@ -256,10 +256,10 @@ def test_the_resolution_can_be_bounded_by_the_steps_seen_before_it_is_measured()
     onboard, x0 = _straight_with_gyro_offset(0.0, 12.0)
     yaw = schema.SIGNAL_BY_NAME["yaw_rate_radps"].index
     onboard[:, yaw] = np.where((np.arange(len(onboard)) // 50) % 2 == 1, math.radians(0.5), 0.0)
-    model = _SlowYawErrorModel(np.full(len(onboard), math.radians(0.25)) - onboard[:, yaw], 249.0)
-    model.bias = StandstillBias(0.0, 0.0, 100)
 
     def resolution_dps(cfg: LocalizerConfig) -> float:
+        model = _SlowYawErrorModel(np.full(len(onboard), math.radians(0.25)) - onboard[:, yaw], 249.0)
+        model.bias = StandstillBias(0.0, 0.0, 100)  # a fresh model per run: it counts its calls
         loc = StreamingLocalizer(model, replace(cfg, stride=1))
         loc.run_arrays(onboard, x0, start_index=schema.WINDOW_LEN - 1)
         return math.degrees(loc.filter.yaw_resolution_radps)
