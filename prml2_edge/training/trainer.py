@@ -29,76 +29,42 @@ only on the seed, the data and the world size; each epoch's shuffle is drawn fro
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 import torch
 
 from prml2_edge import schema
-from prml2_edge.errors import ConfigError, ModelError
+from prml2_edge.errors import ConfigError
 from prml2_edge.progress import Progress
 from prml2_edge.training import distributed as ddp
-from prml2_edge.training.checkpoint import make_checkpoint, read_checkpoint, save_checkpoint
+from prml2_edge.training.checkpoint import make_checkpoint, save_checkpoint
+from prml2_edge.training.epoch_validation import PositionFilter, evaluate_windows, to_tensors, window_batches
 from prml2_edge.training.guard_torch import PhysicsGuard
 from prml2_edge.training.losses import (
-    initial_state,
     nll_loss,
     physics_consistency_loss,
     position_loss,
-    to_window_frame,
 )
 from prml2_edge.training.model import Prml2Model
 from prml2_edge.training.presets import (
     ModelConfig,
     TrainConfig,
-    model_config_from_dict,
-    train_config_from_dict,
 )
+from prml2_edge.training.run_dir import keep_last_as_best, resume_run, start_metrics, write_jsonl
+from prml2_edge.training.train_data import TrainData, WindowSource, check_data, describe, prepare_data, z_statistics
 
 log = logging.getLogger(__name__)
 
 PRETRAIN = "pretrain"
 FINETUNE = "finetune"
 INITIAL = "initial"  # a transfer run's epoch 0: the model it started from, validated on the new car
-EKF_DTYPE = torch.float64  # the filter runs in float64 (100 recursive steps, Joseph form)
-
-
-class WindowSource(Protocol):
-    """What the trainer needs from a window set (``prml2_edge.data.windows.WindowSet``)."""
-
-    def __len__(self) -> int: ...
-
-    def get(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(onboard (b, L, 9) float32, z (b, L, 5) float32, pose (b, L, 3) float64)``."""
-        ...
-
-    # fine-tuning over segments (``TrainConfig.ft_horizon_s > 0``) also needs
-    # ``segment_starts(length, stride)`` and ``get_segments(starts, length, rows)``.
-
-
-@dataclass
-class TrainData:
-    """Everything :func:`fit` reads: windows, normalisation statistics and provenance.
-
-    ``norm_mean``/``norm_std`` (9,) are the dataset's onboard statistics [SI]; ``z_mean``/``z_std``
-    (5,) those of z on the training split [SI].
-    """
-
-    train: WindowSource
-    val: WindowSource
-    norm_mean: np.ndarray
-    norm_std: np.ndarray
-    z_mean: np.ndarray
-    z_std: np.ndarray
-    fingerprint: str
-    skip_rows: tuple[np.ndarray, np.ndarray] | None = None  # (onboard (N, 9), z (N, 5)) to fit the skip on
 
 
 @dataclass
@@ -115,57 +81,11 @@ class FitResult:
     model: Prml2Model | None = None  # the trained model (last epoch's weights, this rank's copy)
 
 
-class _Filter:
-    """Lazy handle on the differentiable EKF (``prml2_edge.training.ekf_torch``)."""
-
-    def __init__(self) -> None:
-        from prml2_edge.training import ekf_torch
-
-        self.ekf = ekf_torch
-        self.Q = ekf_torch.default_process_noise(schema.DT_S, dtype=EKF_DTYPE, device=torch.device("cpu"))
-        self.P0 = ekf_torch.default_initial_covariance(dtype=EKF_DTYPE, device=torch.device("cpu"))
-
-    def positions(self, mean: torch.Tensor, var: torch.Tensor, z_first: torch.Tensor) -> torch.Tensor:
-        """A-posteriori positions (B, T, 2) [m, window frame] over the decoder steps.
-
-        ``mean``/``var`` (B, T, 5) guarded model outputs; ``z_first`` (B, 5) ground-truth z at step H.
-        """
-        b = mean.shape[0]
-        x0 = initial_state(z_first.to(EKF_DTYPE))  # (B, 8)
-        p0 = self.P0.expand(b, -1, -1)
-        x_seq, _ = self.ekf.run_filter(x0, p0, mean.to(EKF_DTYPE), var.to(EKF_DTYPE), Q=self.Q,
-                                       dt_s=schema.DT_S, update_first=True)
-        return x_seq[..., schema.EkfState.POS]  # (B, T, 2)
-
-
-def z_statistics(z_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and std (5,) of ground-truth z rows (N, 5) [SI] (std floored at 1e-3)."""
-    z_rows = np.asarray(z_rows, dtype=np.float64)
-    if z_rows.ndim != 2 or z_rows.shape[1] != schema.NUM_STATES or len(z_rows) < 2:
-        raise ConfigError(f"need at least two ground-truth z rows (N, {schema.NUM_STATES}) for statistics")
-    return z_rows.mean(axis=0), np.maximum(z_rows.std(axis=0), 1e-3)
-
-
 def cosine_lr(lr0: float, step: int, total_steps: int) -> float:
     """Cosine schedule from ``lr0`` at step 0 towards 0 at ``total_steps`` (one stage)."""
     if total_steps <= 1:
         return lr0
     return 0.5 * lr0 * (1.0 + math.cos(math.pi * min(step, total_steps) / total_steps))
-
-
-def _batches(indices: np.ndarray, batch_size: int) -> list[np.ndarray]:
-    return [indices[i : i + batch_size] for i in range(0, len(indices), batch_size)]
-
-
-def _to_tensors(batch: tuple[np.ndarray, np.ndarray, np.ndarray], origin: int):
-    """Tensors of a ``(onboard, z, pose)`` batch; ground-truth positions from step ``origin`` on, in the frame
-    of that step: the first decoder step H for windows, 0 for segments (:meth:`WindowSet.get_segments`)."""
-    onboard, z, pose = batch
-    onboard_t = torch.as_tensor(np.ascontiguousarray(onboard), dtype=torch.float32)  # (b, L, 9)
-    z_t = torch.as_tensor(np.ascontiguousarray(z), dtype=torch.float32)  # (b, L or T, 5)
-    # local positions in float64 (world coordinates can be km: float32 would lose cm)
-    d_gt = to_window_frame(torch.as_tensor(np.asarray(pose, dtype=np.float64)), origin)[:, origin:]
-    return onboard_t, z_t, d_gt
 
 
 def _yaw_offset_augment(onboard: torch.Tensor, cfg: TrainConfig, step: int) -> torch.Tensor:
@@ -196,57 +116,6 @@ def _steps_per_epoch(n_windows: int, cfg: TrainConfig, world_size: int) -> int:
     return max(1, -(-per_rank // per_rank_batch))
 
 
-def evaluate_windows(model: Prml2Model, guard: PhysicsGuard, windows: WindowSource, *, batch_size: int,
-                     with_position: bool, filt: _Filter | None, beta: float = 8.0,
-                     info: ddp.DistInfo | None = None, nll_reduction: str = "sum") -> dict:
-    """Validation metrics over all windows of ``windows`` (sharded over ranks, summed).
-
-    Returns ``{"val_nll", "val_pos" (or NaN), "val_rmse_<state>", "val_guard_fire_rate", "val_windows"}``:
-    NLL and position term are means per window (the training objective's scale); RMSE over
-    every decoder step of every window, guarded means, SI units.
-    """
-    info = info or ddp.DistInfo()
-    H = model.cfg.encoder_len
-    idx_all = ddp.shard(np.arange(len(windows)), info) if len(windows) else np.arange(0)
-    n_states = schema.NUM_STATES
-    # sums: nll, pos, n_windows, sq_err (5), n_steps, fired, predictions
-    acc = torch.zeros(5 + n_states, dtype=torch.float64)
-    was_training = model.training
-    model.eval()
-    fired0 = guard.n_fired
-    with torch.no_grad():
-        for idx in _batches(idx_all, batch_size):
-            onboard, z, d_gt = _to_tensors(windows.get(idx), H)
-            mean, var = guard(*model(onboard))
-            z_dec = z[:, H:]
-            acc[0] += nll_loss(mean, var, z_dec, model.z_std, nll_reduction).double().sum()
-            if with_position and filt is not None:
-                d = filt.positions(mean, var, z[:, H])
-                acc[1] += position_loss(d, d_gt, beta).sum()
-            acc[2] += len(idx)
-            acc[3 : 3 + n_states] += ((mean - z_dec).double() ** 2).sum(dim=(0, 1))
-            acc[3 + n_states] += z_dec.shape[0] * z_dec.shape[1]
-    acc[4 + n_states] = guard.n_fired - fired0  # fired predictions in this evaluation
-    acc = ddp.all_reduce_sum(acc, info)
-    model.train(was_training)
-    n_win = max(acc[2].item(), 1.0)
-    n_steps = max(acc[3 + n_states].item(), 1.0)
-    out = {
-        "val_nll": acc[0].item() / n_win,
-        "val_pos": acc[1].item() / n_win if with_position and filt is not None else float("nan"),
-        "val_windows": int(acc[2].item()),
-    }
-    for i, name in enumerate(schema.STATE_NAMES):
-        out[f"val_rmse_{name}"] = math.sqrt(acc[3 + i].item() / n_steps)
-    out["val_guard_fire_rate"] = acc[4 + n_states].item() / (n_steps * 1.0)
-    return out
-
-
-def _write_jsonl(path: Path, record: dict) -> None:
-    with path.open("a") as fh:
-        fh.write(json.dumps(record, sort_keys=True) + "\n")
-
-
 @dataclass
 class _Loop:
     """What every epoch and step of :func:`fit` shares (one run, this rank)."""
@@ -256,7 +125,7 @@ class _Loop:
     guard: PhysicsGuard
     optimizer: torch.optim.Optimizer
     params: list[torch.nn.Parameter]
-    filt: _Filter | None
+    filt: PositionFilter | None
     cfg: TrainConfig
     info: ddp.DistInfo
     counters: dict[str, float]
@@ -311,7 +180,7 @@ def fit(
     out_dir = Path(out_dir)
     metrics_path = out_dir / "metrics.jsonl"
     best_path, last_path = out_dir / "best.pt", out_dir / "last.pt"
-    _check_data(data)
+    check_data(data)
 
     torch.manual_seed(train_cfg.seed)
     model = _initial_model(data, model_cfg, init)
@@ -320,10 +189,10 @@ def fit(
                                   "grad_log_ema": math.nan}
     start_epoch, best_score, history = 0, math.inf, []
     if resume is not None:
-        start_epoch, best_score, history = _resume(resume, model, optimizer, counters, model_cfg, train_cfg, data,
+        start_epoch, best_score, history = resume_run(resume, model, optimizer, counters, model_cfg, train_cfg, data,
                                                    metrics_path)
     if info.is_main:
-        _start_metrics(out_dir, metrics_path, best_path, history if resume is not None else None)
+        start_metrics(out_dir, metrics_path, best_path, history if resume is not None else None)
     loop = _make_loop(model, optimizer, counters, model_cfg, train_cfg, info, len(data.train))
     floor = next((h["val_objective"] for h in history if h.get("stage") == INITIAL), math.inf)
     if init is not None and resume is None:
@@ -335,7 +204,7 @@ def fit(
     _run_epochs(loop, data, range(start_epoch, train_cfg.epochs), best_score, history, preset=preset,
                 out_dir=out_dir, progress=progress, on_epoch=on_epoch, floor=floor)
     if info.is_main and not best_path.is_file() and last_path.is_file():
-        _keep_last_as_best(last_path, best_path)
+        keep_last_as_best(last_path, best_path)
     if info.enabled:
         torch.distributed.barrier()
     return FitResult(out_dir=out_dir, best_path=best_path, last_path=last_path, metrics_path=metrics_path,
@@ -400,61 +269,12 @@ def _validate_initial(loop: _Loop, data: TrainData, history: list[dict], preset:
     return score
 
 
-def _keep_last_as_best(last_path: Path, best_path: Path) -> None:
-    """Every epoch had a non-finite validation objective: keep the last weights as "best"."""
-    ckpt = read_checkpoint(last_path)
-    ckpt.pop("optimizer", None)
-    save_checkpoint(ckpt, best_path)
-
-
-def _check_data(data: TrainData) -> None:
-    if len(data.train) == 0:
-        raise ConfigError("no training windows: the training split is shorter than one window (L samples)")
-    if len(data.val) == 0:
-        raise ConfigError("no validation windows: the validation split is shorter than one window (L samples)")
-
-
-def _resume(resume: str | Path, model: Prml2Model, optimizer: torch.optim.Optimizer, counters: dict[str, float],
-            model_cfg: ModelConfig, train_cfg: TrainConfig, data: TrainData,
-            metrics_path: Path) -> tuple[int, float, list[dict]]:
-    """Load a ``last.pt`` into ``model``/``optimizer``/``counters``: ``(start epoch, best score, history so far)``."""
-    ckpt = read_checkpoint(resume)
-    if ckpt.get("optimizer") is None:
-        raise ModelError(f"{resume} has no optimizer state; resume from a run's last.pt")
-    if model_config_from_dict(ckpt["model_config"]) != model_cfg:
-        raise ConfigError(f"{resume} was trained with another model config; use the same --preset")
-    if train_config_from_dict(ckpt["train_config"]) != train_cfg:
-        raise ConfigError(f"{resume} was trained with other training options; repeat the original ones")
-    if ckpt["dataset_fingerprint"] != data.fingerprint:
-        raise ConfigError(f"{resume} was trained on another dataset (fingerprint {ckpt['dataset_fingerprint']})")
-    model.load_state_dict(ckpt["model"])
-    optimizer.load_state_dict(ckpt["optimizer"])
-    start_epoch = int(ckpt["epoch"])
-    best_score = math.inf if ckpt.get("best_score") is None else float(ckpt["best_score"])
-    counters.update(ckpt.get("counters", {}))
-    history: list[dict] = []
-    if metrics_path.is_file():
-        history = [json.loads(line) for line in metrics_path.read_text().splitlines() if line.strip()]
-        history = [h for h in history if h.get("epoch", 0) <= start_epoch]
-    return start_epoch, best_score, history
-
-
-def _start_metrics(out_dir: Path, metrics_path: Path, best_path: Path, resumed_history: list[dict] | None) -> None:
-    """Create the run directory; a new run starts an empty ``metrics.jsonl``, a resumed one keeps its epochs."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    if resumed_history is None:
-        metrics_path.write_text("")
-        best_path.unlink(missing_ok=True)
-    else:  # drop records of epochs after the checkpoint
-        metrics_path.write_text("".join(json.dumps(h, sort_keys=True) + "\n" for h in resumed_history))
-
-
 def _make_loop(model: Prml2Model, optimizer: torch.optim.Optimizer, counters: dict[str, float],
                model_cfg: ModelConfig, train_cfg: TrainConfig, info: ddp.DistInfo, n_train: int) -> _Loop:
     train_model: torch.nn.Module = model
     if info.enabled:
         train_model = torch.nn.parallel.DistributedDataParallel(model)
-    filt = _Filter() if train_cfg.finetune else None
+    filt = PositionFilter() if train_cfg.finetune else None
     seq_len, seq_rows = train_cfg.ft_horizon_steps(), train_cfg.ft_rows
     if train_cfg.finetune and seq_len and seq_rows > model_cfg.decoder_len:
         raise ConfigError(f"ft_rows = {seq_rows} exceeds the model's {model_cfg.decoder_len} decoder steps")
@@ -494,7 +314,7 @@ def _epoch_batches(loop: _Loop, data: TrainData, epoch: int, seq: bool) -> list[
         if cfg.max_train_windows > 0:
             order = order[: cfg.max_train_windows]
         batch_size = loop.per_rank_batch
-    return _batches(ddp.shard(order, loop.info), batch_size)
+    return window_batches(ddp.shard(order, loop.info), batch_size)
 
 
 def _train_epoch(loop: _Loop, data: TrainData, epoch: int, stage: str, lr: float,
@@ -534,13 +354,13 @@ def _losses(loop: _Loop, data: TrainData, idx: np.ndarray, stage: str,
     cfg, guard = loop.cfg, loop.guard
     if seq:  # the newest seq_rows steps of each window tile its segment
         seq_len, seq_rows = loop.seq_len, loop.seq_rows
-        onboard, z_gt, d_gt = _to_tensors(data.train.get_segments(idx, seq_len, seq_rows), 0)
+        onboard, z_gt, d_gt = to_tensors(data.train.get_segments(idx, seq_len, seq_rows), 0)
         mean, var = guard(*loop.train_model(onboard, rows=seq_rows))  # (b * seq_len / rows, rows, 5) each
         mean = mean.reshape(len(idx), seq_len, -1)  # windows are segment-major, in time order
         var = var.reshape(len(idx), seq_len, -1)
         pos_reduction, n_items = "mean", len(idx) * seq_len // seq_rows  # n_items: windows
     else:
-        onboard, z, d_gt = _to_tensors(data.train.get(idx), loop.H)
+        onboard, z, d_gt = to_tensors(data.train.get(idx), loop.H)
         onboard = _yaw_offset_augment(onboard, cfg, int(loop.counters["steps"]))
         mean, var = guard(*loop.train_model(onboard))  # (b, L-H, 5) each
         z_gt = z[:, loop.H:]
@@ -621,7 +441,7 @@ def _objective(val: dict, stage: str) -> float:
 def _save_epoch(loop: _Loop, record: dict, history: list[dict], improved: bool, best_score: float, preset: str,
                 fingerprint: str, out_dir: Path, epoch: int, stage: str) -> None:
     """Rank 0 after an epoch: the metrics line, ``last.pt``, ``best.pt`` when improved, the loss curve."""
-    _write_jsonl(out_dir / "metrics.jsonl", record)
+    write_jsonl(out_dir / "metrics.jsonl", record)
     ckpt = make_checkpoint(loop.model, preset, loop.cfg, fingerprint, epoch=epoch + 1, stage=stage,
                            metrics=record, counters=loop.counters, optimizer=loop.optimizer, best_score=best_score)
     save_checkpoint(ckpt, out_dir / "last.pt")
@@ -636,36 +456,5 @@ def _save_epoch(loop: _Loop, record: dict, history: list[dict], improved: bool, 
         log.warning(plots.missing_message(str(out_dir / "loss_curve.png")))
 
 
-def describe(model_cfg: ModelConfig, train_cfg: TrainConfig) -> dict:
-    """Plain-data description of a run's configuration (for logs and recipes)."""
-    return {"model": asdict(model_cfg), "train": asdict(train_cfg),
-            "pretrain_epochs": train_cfg.pretrain_epochs(),
-            "finetune_epochs": train_cfg.epochs - train_cfg.pretrain_epochs()}
-
-
-def prepare_data(dataset, model_cfg: ModelConfig, train_cfg: TrainConfig) -> TrainData:
-    """Windows and statistics of a loaded dataset (``prml2_edge.data.datasets.Dataset``) for :func:`fit`.
-
-    Training windows every ``train_cfg.window_stride`` samples of the training split, validation
-    windows every ``train_cfg.val_stride`` samples of the validation split; z statistics and the
-    rows the model's linear skip is fitted on from the training split's samples.
-    """
-    from prml2_edge.data.windows import build_windows
-
-    train_drives = [d for d in dataset.split("train") if d.has_ground_truth]
-    val_drives = [d for d in dataset.split("val") if d.has_ground_truth]
-    if not train_drives:
-        raise ConfigError(f"{dataset.root}: no training drives with ground truth (need z and pose columns)")
-    z_rows = np.concatenate([d.z_gt for d in train_drives])
-    z_mean, z_std = z_statistics(z_rows)
-    L, H = model_cfg.window_len, model_cfg.encoder_len
-    return TrainData(
-        train=build_windows(train_drives, L=L, H=H, stride=train_cfg.window_stride),
-        val=build_windows(val_drives, L=L, H=H, stride=train_cfg.val_stride),
-        norm_mean=np.asarray(dataset.norm_mean, dtype=np.float64),
-        norm_std=np.asarray(dataset.norm_std, dtype=np.float64),
-        z_mean=z_mean,
-        z_std=z_std,
-        fingerprint=str(dataset.fingerprint),
-        skip_rows=(np.concatenate([d.onboard for d in train_drives]), z_rows),
-    )
+__all__ = ["FitResult", "TrainData", "WindowSource", "describe", "evaluate_windows", "fit", "prepare_data",
+           "z_statistics"]
