@@ -150,7 +150,9 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.monotonic()
     specs = recipe_drives(args.cars.split(",") if args.cars else None)
     drives = [resimulate(s, OFFSET_DPS, None) for g in ("test", "heldout") for s in specs[g]]
-    doc = {"machine": machine_info(), "args": vars(args), "offset_dps": OFFSET_DPS,
+    machine = machine_info()
+    print(f"[offset_observability] {machine['cpu_model']}, flags {' '.join(machine['flags'])}", file=sys.stderr)
+    doc = {"machine": machine, "args": vars(args), "offset_dps": OFFSET_DPS,
            "drives": [d.name for d in drives], "straight_below_dps": STRAIGHT_DPS, "min_speed_mps": MIN_SPEED_MPS,
            "windows": measure(drives, math.radians(OFFSET_DPS))}
     doc["wall_s"] = round(time.monotonic() - t0, 1)
