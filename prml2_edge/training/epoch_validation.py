@@ -11,12 +11,7 @@ import torch
 from prml2_edge import schema
 from prml2_edge.training import distributed as ddp
 from prml2_edge.training.guard_torch import PhysicsGuard
-from prml2_edge.training.losses import (
-    initial_state,
-    nll_loss,
-    position_loss,
-    to_window_frame,
-)
+from prml2_edge.training.losses import initial_state, nll_loss, position_loss, to_window_frame
 from prml2_edge.training.model import Prml2Model
 from prml2_edge.training.train_data import WindowSource
 
@@ -47,6 +42,7 @@ class PositionFilter:
 
 
 def window_batches(indices: np.ndarray, batch_size: int) -> list[np.ndarray]:
+    """``indices`` cut into consecutive batches of at most ``batch_size``."""
     return [indices[i : i + batch_size] for i in range(0, len(indices), batch_size)]
 
 

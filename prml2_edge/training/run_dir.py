@@ -11,12 +11,7 @@ import torch
 from prml2_edge.errors import ConfigError, ModelError
 from prml2_edge.training.checkpoint import read_checkpoint, save_checkpoint
 from prml2_edge.training.model import Prml2Model
-from prml2_edge.training.presets import (
-    ModelConfig,
-    TrainConfig,
-    model_config_from_dict,
-    train_config_from_dict,
-)
+from prml2_edge.training.presets import ModelConfig, TrainConfig, model_config_from_dict, train_config_from_dict
 from prml2_edge.training.train_data import TrainData
 
 

@@ -10,10 +10,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.errors import ConfigError
-from prml2_edge.training.presets import (
-    ModelConfig,
-    TrainConfig,
-)
+from prml2_edge.training.presets import ModelConfig, TrainConfig
 
 
 class WindowSource(Protocol):

@@ -47,16 +47,9 @@ from prml2_edge.training import distributed as ddp
 from prml2_edge.training.checkpoint import make_checkpoint, save_checkpoint
 from prml2_edge.training.epoch_validation import PositionFilter, evaluate_windows, to_tensors, window_batches
 from prml2_edge.training.guard_torch import PhysicsGuard
-from prml2_edge.training.losses import (
-    nll_loss,
-    physics_consistency_loss,
-    position_loss,
-)
+from prml2_edge.training.losses import nll_loss, physics_consistency_loss, position_loss
 from prml2_edge.training.model import Prml2Model
-from prml2_edge.training.presets import (
-    ModelConfig,
-    TrainConfig,
-)
+from prml2_edge.training.presets import ModelConfig, TrainConfig
 from prml2_edge.training.run_dir import keep_last_as_best, resume_run, start_metrics, write_jsonl
 from prml2_edge.training.train_data import TrainData, WindowSource, check_data, describe, prepare_data, z_statistics
 
