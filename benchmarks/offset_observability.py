@@ -40,6 +40,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.bench.machine import machine_info
+from prml2_edge.data.simulate.fleet import CARS as FLEET
 from prml2_edge.data.simulate.fleet import get_car
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -150,6 +151,8 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.monotonic()
     specs = recipe_drives(args.cars.split(",") if args.cars else None)
     drives = [resimulate(s, OFFSET_DPS, None) for g in ("test", "heldout") for s in specs[g]]
+    if not drives:
+        ap.error(f"no test drive of --cars {args.cars!r} in the benchmark recipe; its fleet is {', '.join(FLEET)}")
     machine = machine_info()
     print(f"[offset_observability] {machine['cpu_model']}, flags {' '.join(machine['flags'])}", file=sys.stderr)
     doc = {"machine": machine, "args": vars(args), "offset_dps": OFFSET_DPS,

@@ -7,9 +7,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
-from offset_observability import CUES, joint_offset  # noqa: E402
+from offset_observability import CUES, joint_offset, main  # noqa: E402
 
 
 def _cues(v: np.ndarray, rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -32,3 +33,9 @@ def test_an_offset_is_separable_when_the_speed_varies_and_not_when_it_holds() ->
     assert all(abs(math.degrees(np.mean(gyro - c) - b)) > 0.2 for c in cues.values())
     held = np.full(250, 15.0)  # 5 s at one speed: the constant and the speed terms are the same column
     assert joint_offset(held, _cues(held, rng), b + np.zeros(250)) is None
+
+
+def test_a_car_the_recipe_does_not_have_is_refused_in_one_line(capsys) -> None:
+    with pytest.raises(SystemExit) as e:
+        main(["--cars", "nosuchcar", "--json", "unused.json"])
+    assert e.value.code == 2 and "no test drive of --cars 'nosuchcar'" in capsys.readouterr().err
