@@ -14,7 +14,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -25,6 +24,7 @@ from prml2_edge import schema
 from prml2_edge.bench.latency import build_pipeline, measure_steps, open_session_model, summarize
 from prml2_edge.bench.machine import load_average, load_label, machine_info
 from prml2_edge.bench.replay_input import simulated_frames
+from prml2_edge.bench.results import write_json
 from prml2_edge.config import DEFAULT_STRIDE
 from prml2_edge.runtime.latency import DEADLINE_MS
 
@@ -82,8 +82,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['model_used_steps']} rows{lag}; {r['load']}")
     doc = {"benchmark": "async_latency", "machine": machine, "args": vars(args), "runs": runs,
            "wall_s": time.time() - t0}
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(doc, indent=1, default=float))
+    write_json(doc, args.out)
     print(f"wrote {args.out}")
     return 0
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import time
 from pathlib import Path
 
@@ -27,6 +26,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.bench.machine import machine_info
+from prml2_edge.bench.results import write_json
 from prml2_edge.can.signal_map import DECEL_BAR_PER_MPS2, DECEL_IDLE_BAR
 from prml2_edge.data.datasets import generate_dataset, load_dataset
 from prml2_edge.evaluation.protocol import ModelSpec, run_all, split_tasks
@@ -89,8 +89,7 @@ def main(argv: list[str] | None = None) -> int:
         r["windows_worse"] = int((d > 0).sum())
     out = {"benchmark": "brake_substitute", "windows": len(tasks), "model": args.model, "data": str(data),
            "wall_s": time.time() - t0, "machine": machine_info(), "results": rows}
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(out, indent=1) + "\n")
+    write_json(out, OUT)
     print(f"{len(tasks)} windows, {time.time() - t0:.0f} s; wrote {OUT}")
     return 0
 

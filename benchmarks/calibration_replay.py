@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from prml2_edge.bench.machine import machine_info
+from prml2_edge.bench.results import write_json
 from prml2_edge.can.encode import course_over_ground, encode_drive_to_log
 from prml2_edge.data.revsted import write_drive_csv
 from prml2_edge.data.simulate import CARS, simulate_drive
@@ -133,9 +134,7 @@ def highway_case(args) -> int:
                                                                     for r in rows]))}
     doc = {"started": started, "machine": machine_info(), "case": "highway", "args": vars(args), "cars": rows,
            "summary": summary}
-    out = Path(args.out or OUT_HIGHWAY)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1, default=float))
+    out = write_json(doc, args.out or OUT_HIGHWAY)
     print(f"all cars: {summary['refused_total']} genuine fixes refused (target 0); yaw offset within "
           f"{summary['max_yaw_offset_error_dps']:.3f} °/s (target 0.1); drift mean {summary['mean_drift_pct']:.2f} %, "
           f"max {summary['max_drift_pct']:.2f} % (target 1.5), without calibration "
@@ -191,9 +190,7 @@ def main(argv: list[str] | None = None) -> int:
     summary["calibrated"]["wheel_scale_estimate_pct"] = float(np.mean([c["wheel_scale_pct"] for c in cal]))
     doc = {"started": started, "machine": machine_info(), "args": vars(args), "drives": rows, "summary": summary,
            "truth": {"yaw_offset_dps": args.yaw_offset_dps, "wheel_scale_pct": args.wheel_scale_pct}}
-    out = Path(args.out or OUT)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1, default=float))
+    out = write_json(doc, args.out or OUT)
     s, r = summary["calibrated"], summary["reference"]
     print(f"mean over {len(rows)} drives: drift {s['drift_pct']:.2f} % against {r['drift_pct']:.2f} % without "
           f"calibration; RMSE {s['rmse_m']:.1f} against {r['rmse_m']:.1f} m; coverage 1/2/3σ "

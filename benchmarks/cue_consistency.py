@@ -19,8 +19,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import sys
 from pathlib import Path
 
@@ -28,6 +26,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.bench.machine import machine_info
+from prml2_edge.bench.results import write_json
 from prml2_edge.data.datasets import load_dataset
 from prml2_edge.evaluation.error_model import consistency, model_errors
 from prml2_edge.evaluation.protocol import ModelSpec, run_all, split_tasks
@@ -87,8 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--jobs", type=int, default=2)
     args = p.parse_args(argv)
     doc = {"machine": machine_info(), **measure(args)}
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(json.dumps(doc, indent=1, default=lambda x: None if isinstance(x, float) and math.isnan(x) else x))
+    write_json(doc, OUT)
     print("\n".join(markdown(doc)))
     print(f"wrote {OUT}")
     return 0

@@ -26,13 +26,13 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 from prml2_edge.bench.machine import machine_info
+from prml2_edge.bench.results import write_json
 from prml2_edge.can.encode import encode_drive_to_log
 from prml2_edge.can.signal_map import SHIPPED_MAPS, load_map_and_dbc, shipped_map_path
 from prml2_edge.data.simulate import simulate_drive
@@ -137,9 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     out = {"benchmark": "doctor_log", "drives": args.drives, "minutes": args.minutes, "families": FAMILIES,
            "maps": maps, "outcomes": OUTCOMES, "wall_s": time.time() - t0, "machine": machine_info(),
            "results": results, "misses": misses}
-    out_path = Path(args.out)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    out_path.write_text(json.dumps(out, indent=1) + "\n")
+    out_path = write_json(out, args.out)
     print(f"{time.time() - t0:.0f} s; {len(misses)} miss(es); wrote {out_path}")
     return 1 if misses else 0
 

@@ -31,7 +31,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 import zlib
@@ -41,6 +40,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.bench.machine import machine_info
+from prml2_edge.bench.results import write_json
 from prml2_edge.data.datasets import load_dataset
 from prml2_edge.data.simulate.fleet import CARS
 from prml2_edge.evaluation.consumer_gnss import GNSS_HEADING_MIN_SPEED_MPS, GNSS_HEADING_STD_DEG, GNSS_RATE_HZ
@@ -198,9 +198,7 @@ def main(argv: list[str] | None = None) -> int:
            "splits": {s: {**measure_split(dataset, s), "gain_evidence": gain_rows(dataset, s)}
                                                        for s in args.splits}}
     doc["wall_s"] = time.time() - t0
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1))
+    out = write_json(doc, args.out)
     print("\n".join(markdown(doc)))
     print(f"wrote {out}")
     return 0

@@ -51,7 +51,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -63,6 +62,7 @@ from pathlib import Path
 import numpy as np
 
 from prml2_edge.bench.machine import machine_info
+from prml2_edge.bench.results import write_json
 from prml2_edge.data.datasets import load_dataset
 from prml2_edge.evaluation.metrics import coverage, coverage_text, dr_summary, paired_comparison, paired_text
 from prml2_edge.evaluation.models import RecordingModel, ReplayModel
@@ -417,9 +417,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.time()
     doc = {"machine": machine_info(), **measure(args)}
     doc["wall_s"] = time.time() - t0
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1, default=float))
+    out = write_json(doc, args.out)
     print("\n".join(markdown(doc)))
     print(f"wrote {out}")
     return 0

@@ -20,7 +20,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -30,6 +29,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.bench.machine import machine_info
+from prml2_edge.bench.results import write_json
 from prml2_edge.data.datasets import EVAL_SPLITS, load_dataset
 from prml2_edge.ekf.numpy_ekf import Ekf
 from prml2_edge.errors import DataError
@@ -124,8 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     doc = {"benchmark": "innovation_check", "data": args.data, "model": Path(args.model).name, "split": args.split,
            "windows": len(tasks), "seconds": round(time.time() - t0, 1), "machine": machine_info(),
            "cues": summarise(per_window)}
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(doc, indent=1))
+    write_json(doc, args.out)
     print("\n".join(markdown(doc)))
     print(f"{len(tasks)} windows of {args.split}, {doc['seconds']} s; written to {args.out}")
     return 0

@@ -30,7 +30,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -40,6 +39,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.bench.machine import machine_info
+from prml2_edge.bench.results import write_json
 from prml2_edge.data.simulate.fleet import CARS as FLEET
 from prml2_edge.data.simulate.fleet import get_car
 
@@ -160,9 +160,7 @@ def main(argv: list[str] | None = None) -> int:
            "windows": measure(drives, math.radians(OFFSET_DPS))}
     doc["wall_s"] = round(time.monotonic() - t0, 1)
     print("\n".join(markdown(doc)))
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1) + "\n")
+    out = write_json(doc, args.json)
     print(f"wrote {out} ({doc['wall_s']} s)")
     return 0
 

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
 import math
 import sys
 import tempfile
@@ -48,6 +47,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.bench.machine import machine_info
+from prml2_edge.bench.results import write_json
 from prml2_edge.can.encode import encode_drive_to_log
 from prml2_edge.can.signal_map import load_dbc
 from prml2_edge.data.simulate import simulate_drive
@@ -388,8 +388,7 @@ def main(argv: list[str] | None = None) -> int:
             doc["clean_hour"].append(clean_hour(car, args.seed, args.clean_minutes))
             bar.update()
         bar.close()
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(doc, indent=2, default=float) + "\n")
+    write_json(doc, args.out, indent=2)
     lines = markdown(doc)
     print("\n".join(lines))
     if not args.no_readme:

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import targets as tg
+
+from prml2_edge.bench.results import write_json
 
 
 def _config_target(c: dict) -> float | None:
@@ -153,9 +154,7 @@ def targets_markdown(latency: dict | None) -> list[str]:
 
 def save(doc: dict, out: str | Path, update: bool = True) -> Path:
     """Write a result ``doc`` as JSON to ``out`` and, unless ``update`` is False, refresh the docs' tables."""
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1))
+    out = write_json(doc, out)
     if update:
         update_readme()
     return out

@@ -41,7 +41,6 @@ taught (default 20, as ``prml2 evaluate``; 0: a first drive).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -50,6 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from prml2_edge.bench.machine import machine_info
+from prml2_edge.bench.results import write_json
 from prml2_edge.data.datasets import resolve_recipe
 from prml2_edge.data.simulate import simulate_drive
 from prml2_edge.evaluation.metrics import dr_summary, paired_comparison
@@ -318,9 +318,7 @@ def main(argv: list[str] | None = None) -> int:
     doc["targets_met"] = {k: all(v[k] for v in doc["verdict"].values()) for k in ("meets_1_3", "meets_osd")}
     doc["wall_s"] = round(time.monotonic() - t0, 1)
     print("\n".join(markdown(doc)))
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=1) + "\n")
+    out = write_json(doc, args.json)
     print(f"wrote {out}")
     return 0
 

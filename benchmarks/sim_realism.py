@@ -15,7 +15,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
@@ -25,6 +24,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.bench.machine import machine_info
+from prml2_edge.bench.results import write_json
 from prml2_edge.data.simulate import CARS, simulate_drive
 from prml2_edge.evaluation.osd import drive_bias, osd_baseline_z
 from prml2_edge.schema import Z
@@ -114,11 +114,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\n{len(jobs)} drives in {wall:.0f} s; cells: mean RMSE [m] (drift)")
     info = machine_info()
     print(f"machine: {info['cpu_model']}, flags {', '.join(info['flags'])}; load {info.get('load_average')}")
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
     doc = {"started": time.strftime("%Y-%m-%d %H:%M:%S"), "machine": info, "args": vars(args), "rows": rows,
            "wall_s": wall}
-    out.write_text(json.dumps(doc, indent=1) + "\n")
+    out = write_json(doc, args.json)
     print(f"wrote {out}")
     return 0
 

@@ -14,7 +14,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing as mp
 import os
 import sys
@@ -26,6 +25,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.bench.machine import machine_info
+from prml2_edge.bench.results import write_json
 from prml2_edge.data.datasets import load_dataset
 from prml2_edge.evaluation.metrics import coverage, coverage_text, dr_summary, paired_comparison, paired_text
 from prml2_edge.evaluation.models import RecordingModel, ReplayModel
@@ -146,8 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.time()
     doc = {"machine": machine_info(), **measure(args)}
     doc["wall_s"] = time.time() - t0
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(doc, indent=1, default=float))
+    write_json(doc, args.out)
     print("\n".join(markdown(doc)))
     print(f"wrote {args.out}")
     return 0
