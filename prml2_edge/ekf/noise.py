@@ -9,8 +9,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from prml2_edge import schema
-from prml2_edge.ekf.equations import _ACC, _OMEGA, _VEL, _YAW, FULL_DIM, STATE_DIM
+from prml2_edge.ekf.equations import FULL_DIM, STATE_DIM
 from prml2_edge.schema import CalState, EkfState
+
+_YAW, _OMEGA = EkfState.YAW.start, EkfState.OMEGA_Z.start  # from the schema, as the runtime's modules take them
+_VEL, _ACC = EkfState.VEL, EkfState.ACC
 
 
 @dataclass(frozen=True)
