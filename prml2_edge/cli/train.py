@@ -61,6 +61,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="add a random CAN yaw-rate offset within +-DPS deg/s to each training window's input "
                              "(the target stays the truth), so that the model does not pass a gyro offset through "
                              "(default 0: off)")
+    parser.add_argument("--yaw-quant-aug", type=float, metavar="SHARE",
+                        help="round the input yaw rate of this share (0-1) of the training windows to a coarse "
+                             "gyro's step (0.2-1.5 deg/s), so that the model learns to read the rate within a step "
+                             "from the other signals (default 0: off)")
     parser.add_argument("--omega-residual", action="store_true",
                         help="residual form: the model's omega_z is the CAN yaw rate plus a learned correction "
                              "(zero transformer part at the start) instead of a direct output (default: off)")
@@ -166,6 +170,7 @@ def run(args: argparse.Namespace) -> int:
         "finetune": False if args.no_finetune else None, "nll_reduction": args.nll_reduction,
         "ft_horizon_s": args.ft_horizon, "pretrain_physics": args.pretrain_physics,
         "pretrain_frac": args.pretrain_frac, "beta": args.beta, "yaw_offset_aug_dps": args.yaw_offset_aug,
+        "yaw_quant_aug": args.yaw_quant_aug,
     })
     train_cfg.validate()
     torch.set_num_threads(train_cfg.num_threads)

@@ -112,6 +112,10 @@ class TrainConfig:
     # through, as the runtime filter assumes (offset share 0). Window batches only (pretraining and the paper's
     # fine-tuning), not the segments of ft_horizon_s > 0. 0: off.
     yaw_offset_aug_dps: float = 0.0
+    # Issue 26: the share of training windows whose input yaw rate is rounded to a coarse gyro's step (0.2-1.5
+    # deg/s, training/augment.py), so that the model learns to tell the rate within a step from the other
+    # signals on every car, not only on the coarse ones. Window batches only. 0: off.
+    yaw_quant_aug: float = 0.0
 
     def pretrain_epochs(self) -> int:
         """Epochs of NLL pretraining: all of them for PRML2*, otherwise round(70 %)."""
@@ -140,6 +144,8 @@ class TrainConfig:
             raise ConfigError(f"mu must be > 0, got {self.mu}")
         if not (self.yaw_offset_aug_dps >= 0):
             raise ConfigError(f"--yaw-offset-aug must be >= 0 deg/s, got {self.yaw_offset_aug_dps}")
+        if not (0.0 <= self.yaw_quant_aug <= 1.0):
+            raise ConfigError(f"--yaw-quant-aug is a share of the windows, 0 to 1, got {self.yaw_quant_aug}")
         if self.nll_reduction not in ("sum", "mean"):
             raise ConfigError(f"nll_reduction must be 'sum' or 'mean', got {self.nll_reduction!r}")
         if self.ft_horizon_s < 0 or self.ft_rows < 1 or self.ft_segments < 1:

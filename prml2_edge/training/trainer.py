@@ -44,6 +44,7 @@ from prml2_edge import schema
 from prml2_edge.errors import ConfigError
 from prml2_edge.progress import Progress
 from prml2_edge.training import distributed as ddp
+from prml2_edge.training.augment import augment
 from prml2_edge.training.checkpoint import make_checkpoint, save_checkpoint
 from prml2_edge.training.epoch_validation import PositionFilter, evaluate_windows, to_tensors, window_batches
 from prml2_edge.training.guard_torch import PhysicsGuard
@@ -79,19 +80,6 @@ def cosine_lr(lr0: float, step: int, total_steps: int) -> float:
     if total_steps <= 1:
         return lr0
     return 0.5 * lr0 * (1.0 + math.cos(math.pi * min(step, total_steps) / total_steps))
-
-
-def _yaw_offset_augment(onboard: torch.Tensor, cfg: TrainConfig, step: int) -> torch.Tensor:
-    """``onboard`` (b, L, 9) with one uniform yaw-rate offset per window within +-``cfg.yaw_offset_aug_dps``
-    (seeded by the run's seed and the step, so a resumed run draws the same); unchanged when that is 0."""
-    if cfg.yaw_offset_aug_dps <= 0:
-        return onboard
-    rng = np.random.default_rng([cfg.seed, 26, step])
-    offset = rng.uniform(-1.0, 1.0, onboard.shape[0]) * np.radians(cfg.yaw_offset_aug_dps)
-    yaw = schema.SIGNAL_BY_NAME["yaw_rate_radps"].index
-    out = onboard.clone()
-    out[:, :, yaw] += torch.as_tensor(offset, dtype=out.dtype)[:, None]
-    return out
 
 
 def _stage_of(epoch: int, cfg: TrainConfig) -> str:
@@ -354,7 +342,7 @@ def _losses(loop: _Loop, data: TrainData, idx: np.ndarray, stage: str,
         pos_reduction, n_items = "mean", len(idx) * seq_len // seq_rows  # n_items: windows
     else:
         onboard, z, d_gt = to_tensors(data.train.get(idx), loop.H)
-        onboard = _yaw_offset_augment(onboard, cfg, int(loop.counters["steps"]))
+        onboard = augment(onboard, cfg, int(loop.counters["steps"]))
         mean, var = guard(*loop.train_model(onboard))  # (b, L-H, 5) each
         z_gt = z[:, loop.H:]
         pos_reduction, n_items = "sum", len(idx)

@@ -303,8 +303,8 @@ def test_yaw_offset_augmentation_moves_only_the_yaw_rate_by_one_offset_per_windo
     import torch
 
     from prml2_edge import schema
+    from prml2_edge.training.augment import yaw_offset_augment as _yaw_offset_augment
     from prml2_edge.training.presets import TrainConfig
-    from prml2_edge.training.trainer import _yaw_offset_augment
 
     onboard = torch.randn(64, 20, schema.NUM_SIGNALS)
     assert _yaw_offset_augment(onboard, TrainConfig(), 3) is onboard  # off by default
@@ -319,3 +319,37 @@ def test_yaw_offset_augmentation_moves_only_the_yaw_rate_by_one_offset_per_windo
     assert np.abs(per_window).max() <= math.radians(0.6) + 1e-6 and per_window[:, 0].std() > math.radians(0.2)
     assert torch.equal(out, _yaw_offset_augment(onboard, cfg, 3))  # seeded by the step: a resume draws the same
     assert not torch.equal(out, _yaw_offset_augment(onboard, cfg, 4))
+
+
+def test_yaw_quant_augmentation_rounds_a_share_of_fine_windows_to_a_coarse_step_and_leaves_coarse_ones():
+    import math
+
+    import torch
+
+    from prml2_edge import schema
+    from prml2_edge.training.augment import QUANT_STEP_RANGE_DPS, yaw_quant_augment
+    from prml2_edge.training.presets import TrainConfig
+
+    yaw = schema.SIGNAL_BY_NAME["yaw_rate_radps"].index
+    g = torch.Generator().manual_seed(0)
+    onboard = torch.randn(400, 50, schema.NUM_SIGNALS, generator=g, dtype=torch.float64) * 0.05
+    coarse_step = math.radians(1.28)
+    onboard[200:, :, yaw] = torch.round(onboard[200:, :, yaw] / coarse_step) * coarse_step  # a 1.28 deg/s gyro
+    assert yaw_quant_augment(onboard, TrainConfig(), 3) is onboard  # off by default
+    with pytest.raises(ConfigError, match="share"):
+        TrainConfig(yaw_quant_aug=1.5).validate()
+    cfg = TrainConfig(yaw_quant_aug=0.5)
+    out = yaw_quant_augment(onboard, cfg, 3)
+    others = [i for i in range(schema.NUM_SIGNALS) if i != yaw]
+    assert torch.equal(out[:, :, others], onboard[:, :, others])
+    assert torch.equal(out[200:], onboard[200:])  # already coarser than half of any drawn step: kept
+    changed = (out[:200, :, yaw] != onboard[:200, :, yaw]).any(dim=1)
+    assert 0.35 < changed.double().mean() < 0.65  # about the share asked for
+    lo, hi = (math.radians(d) for d in QUANT_STEP_RANGE_DPS)
+    for row in out[:200][changed, :, yaw]:  # each changed window lies on one grid within the range
+        levels = torch.unique(row)
+        step = (levels[1:] - levels[:-1]).min() if len(levels) > 1 else torch.tensor(hi)
+        assert lo * 0.999 <= step <= 2 * hi
+        assert torch.allclose(torch.round(levels / step) * step, levels)
+    assert (out[:200, :, yaw] - onboard[:200, :, yaw]).abs().max() <= hi / 2 + 1e-12  # rounding, nothing more
+    assert torch.equal(out, yaw_quant_augment(onboard, cfg, 3))  # seeded by the step
