@@ -224,10 +224,11 @@ def _metrics(data, dataset, stride: int, window_s: float, tuning: Tuning, tuned:
 
 
 def _per_vehicle(dataset, tuned: Sequence[ModelSpec], sets: dict, results: dict) -> dict:
-    """``{split: {car: {model: dr_summary}}}`` for test, snow and heldout: on which car each model helps."""
+    """``{split: {car: {model: dr_summary}}}`` for test, snow, deployment and heldout: on which car each model
+    helps."""
     vehicle_of = dict(zip((d["name"] for d in dataset.manifest["drives"]), dataset.vehicles(), strict=True))
     out: dict = {}
-    for split in ("test", "snow", "heldout"):
+    for split in ("test", "snow", "deployment", "heldout"):
         car_of = {t.key: vehicle_of.get(t.drive, "reference") for t in sets.get(split) or []}
         by_car: dict = {}
         for car in sorted(set(car_of.values())):

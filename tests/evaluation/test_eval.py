@@ -227,7 +227,7 @@ def test_per_vehicle_breakdown_says_on_which_car_a_model_helps(tmp_path):
     model = make_kinematic_model(tmp_path / "kinematic.onnx")
     specs = [ModelSpec("OSD-Baseline", "osd"), ModelSpec("PRML2", "onnx", str(model))]
     metrics = evaluate(data, specs, tmp_path / "rep", window_s=WINDOW_S, snow=False, tum=False, plots=False,
-                       calibration="off", preroll_s=0.0, progress=False)
+                       calibration="off", preroll_s=2.0, progress=False)
     per = metrics["per_vehicle"]["test"]
     assert set(per) == {"reference", "city_fwd"}
     for name in ("OSD-Baseline", "PRML2"):  # the cars' windows add up to the split's
@@ -238,6 +238,11 @@ def test_per_vehicle_breakdown_says_on_which_car_a_model_helps(tmp_path):
     row = next(ln for ln in report.splitlines() if ln.startswith("| test | city_fwd | PRML2 |"))
     ratio = per["city_fwd"]["PRML2"]["rmse_mean_m"] / per["city_fwd"]["OSD-Baseline"]["rmse_mean_m"]
     assert f"| {ratio:.2f} |" in row
+    dep = metrics["per_vehicle"]["deployment"]  # the deployment protocol's windows, by car too
+    assert set(dep) == {"reference", "city_fwd"}
+    assert sum(dep[car]["PRML2"]["n_windows"] for car in dep) == \
+        metrics["models"]["PRML2"]["deployment"]["dead_reckoning_60s"]["n_windows"]
+    assert any(ln.startswith("| deployment | city_fwd | PRML2 |") for ln in report.splitlines())
 
 
 def test_filter_variants_replay_the_models_outputs_exactly(tiny):
