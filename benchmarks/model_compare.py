@@ -34,6 +34,7 @@ from prml2_edge.data.datasets import load_dataset
 from prml2_edge.evaluation.metrics import coverage, coverage_text, dr_summary, paired_comparison, paired_text
 from prml2_edge.evaluation.protocol import ModelSpec, run_all, split_tasks, tune_osd
 from prml2_edge.evaluation.unit_history import HISTORY_MINUTES
+from prml2_edge.progress import Progress
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "results" / "model_compare.json"
@@ -75,8 +76,11 @@ def measure(args: argparse.Namespace) -> dict:
                                 history_min=args.history_min)
             if not tasks:
                 continue
-            res = run_all([osd_spec, *specs], tasks, jobs=args.jobs)
-            doc["rows"][f"{split} / {protocol}"] = compare(res["A"], res["B"], res[OSD])
+            bar = Progress(3 * len(tasks), desc=f"{split} / {protocol}", unit="win")
+            res = run_all([osd_spec, *specs], tasks, jobs=args.jobs, on_done=lambda _r, bar=bar: bar.update())
+            bar.close()
+            row = doc["rows"][f"{split} / {protocol}"] = compare(res["A"], res["B"], res[OSD])
+            print(f"{split} / {protocol}: B - A {paired_text(row['b_minus_a'])} m", file=sys.stderr, flush=True)
     return doc
 
 
