@@ -293,7 +293,8 @@ def _localizer_config(spec: ModelSpec, task: WindowTask, stride: int):
                            **kwargs)
 
 
-def _start_state(task: WindowTask) -> np.ndarray:
+def start_state(task: WindowTask) -> np.ndarray:
+    """The filter's start state: the true pose and z at the first row it runs (the pre-roll's, when there is one)."""
     pose, z = (task.pre_pose_gt[0], task.pre_z_gt[0]) if task.preroll else (task.pose_gt[0], task.z_gt[0])
     x0 = np.zeros(EkfState.DIM)
     x0[EkfState.POS] = pose[:2]
@@ -328,14 +329,11 @@ def restore_standstill_calibration(loc, bias: StandstillBias, wheel_scale: tuple
     return True
 
 
-def run_window(spec: ModelSpec, task: WindowTask, stride: int = 1, model=None) -> WindowResult:
-    """Dead-reckon ``task`` with ``spec`` through :meth:`StreamingLocalizer.run_arrays`.
-
-    With a pre-roll (deployment protocol) the filter starts at the true pose ``preroll`` rows before the
-    outage and fuses :func:`simulated_fixes` until it; everything reported is from the outage start on.
-    ``model``: use this model (e.g. a :class:`~prml2_edge.evaluation.models.ReplayModel` of recorded outputs)
-    instead of building ``spec``'s.
-    """
+def localizer_for(spec: ModelSpec, task: WindowTask, stride: int = 1, model=None):
+    """``(localizer, recording model)``: the streaming localiser ``spec`` runs ``task`` with, as :func:`run_window`
+    sets it up (the protocol's receiver settings, the car's settings, the spec's filter overrides, the calibration
+    file's standstill offset, wheel scale and gyro gain); ``model`` as in :func:`run_window`. Run it with
+    ``loc.run_arrays(task.onboard, start_state(task), start_index=task.history, ...)``."""
     from prml2_edge.evaluation.models import RecordingModel
     from prml2_edge.runtime.localizer import StreamingLocalizer
 
@@ -348,7 +346,19 @@ def run_window(spec: ModelSpec, task: WindowTask, stride: int = 1, model=None) -
             loc.filter.yaw_gain.restore(*task.yaw_gain)
     if not spec.guard:
         loc.a_max_mps2 = NO_GUARD_A_MAX_MPS2  # ablation: no friction-circle bound (speed/yaw-rate bounds stay)
-    traj = loc.run_arrays(task.onboard, _start_state(task), start_index=task.history, gnss=simulated_fixes(task))
+    return loc, model
+
+
+def run_window(spec: ModelSpec, task: WindowTask, stride: int = 1, model=None) -> WindowResult:
+    """Dead-reckon ``task`` with ``spec`` through :meth:`StreamingLocalizer.run_arrays`.
+
+    With a pre-roll (deployment protocol) the filter starts at the true pose ``preroll`` rows before the
+    outage and fuses :func:`simulated_fixes` until it; everything reported is from the outage start on.
+    ``model``: use this model (e.g. a :class:`~prml2_edge.evaluation.models.ReplayModel` of recorded outputs)
+    instead of building ``spec``'s.
+    """
+    loc, model = localizer_for(spec, task, stride, model)
+    traj = loc.run_arrays(task.onboard, start_state(task), start_index=task.history, gnss=simulated_fixes(task))
     h = task.history + task.preroll  # the outage starts here
     pose = traj.pose[h:]
     d = pose[:, :2] - task.pose_gt[:, :2]
