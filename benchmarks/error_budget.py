@@ -40,7 +40,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.bench.machine import machine_info
-from prml2_edge.bench.results import write_json
+from prml2_edge.bench.results import finish
 from prml2_edge.data.datasets import load_dataset
 from prml2_edge.data.simulate.fleet import CARS
 from prml2_edge.evaluation.consumer_gnss import GNSS_HEADING_MIN_SPEED_MPS, GNSS_HEADING_STD_DEG, GNSS_RATE_HZ
@@ -192,15 +192,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--splits", nargs="+", default=["val", "test", "snow", "heldout"])
     p.add_argument("--out", default=str(OUT), help=f"result JSON (default {OUT.relative_to(HERE.parent)})")
     args = p.parse_args(argv)
-    t0 = time.time()
+    t0 = time.monotonic()
     dataset = load_dataset(args.data)
     doc = {"machine": machine_info(), "data": str(args.data),
            "splits": {s: {**measure_split(dataset, s), "gain_evidence": gain_rows(dataset, s)}
                                                        for s in args.splits}}
-    doc["wall_s"] = time.time() - t0
-    out = write_json(doc, args.out)
-    print("\n".join(markdown(doc)))
-    print(f"wrote {out}")
+    finish(doc, args.out, markdown, t0)
     return 0
 
 

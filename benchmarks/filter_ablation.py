@@ -61,8 +61,7 @@ from pathlib import Path
 
 import numpy as np
 
-from prml2_edge.bench.machine import machine_info
-from prml2_edge.bench.results import write_json
+from prml2_edge.bench.results import announce, finish
 from prml2_edge.data.datasets import load_dataset
 from prml2_edge.evaluation.metrics import coverage, coverage_text, dr_summary, paired_comparison, paired_text
 from prml2_edge.evaluation.models import RecordingModel, ReplayModel
@@ -414,12 +413,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="which protocols to run (default both)")
     p.add_argument("--out", default=str(OUT), help=f"result JSON (default {OUT.relative_to(HERE.parent)})")
     args = p.parse_args(argv)
-    t0 = time.time()
-    doc = {"machine": machine_info(), **measure(args)}
-    doc["wall_s"] = time.time() - t0
-    out = write_json(doc, args.out)
-    print("\n".join(markdown(doc)))
-    print(f"wrote {out}")
+    t0 = time.monotonic()
+    doc = {"machine": announce("filter_ablation"), **measure(args)}
+    finish(doc, args.out, markdown, t0)
     return 0
 
 

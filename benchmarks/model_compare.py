@@ -28,8 +28,7 @@ from pathlib import Path
 import numpy as np
 from filter_ablation import DRY_VAL, OSD, PROTOCOLS, RESIMULATED, SNOW_VAL, car_of, resimulated
 
-from prml2_edge.bench.machine import machine_info
-from prml2_edge.bench.results import write_json
+from prml2_edge.bench.results import announce, finish
 from prml2_edge.data.datasets import load_dataset
 from prml2_edge.evaluation.metrics import coverage, coverage_text, dr_summary, paired_comparison, paired_text
 from prml2_edge.evaluation.protocol import ModelSpec, run_all, split_tasks, tune_osd
@@ -121,14 +120,9 @@ def main(argv: list[str] | None = None) -> int:
     for name in (args.a, args.b):
         if not Path(name).is_file():
             p.error(f"no model file {name}: give the .onnx that prml2 export wrote")
-    t0 = time.time()
-    machine = machine_info()
-    print(f"[model_compare] {machine['cpu_model']}, flags {' '.join(machine['flags'])}", file=sys.stderr)
-    doc = {"machine": machine, "args": vars(args), **measure(args)}
-    doc["wall_s"] = round(time.time() - t0, 1)
-    out = write_json(doc, args.out)
-    print("\n".join(markdown(doc)))
-    print(f"wrote {out}")
+    t0 = time.monotonic()
+    doc = {"machine": announce("model_compare"), "args": vars(args), **measure(args)}
+    finish(doc, args.out, markdown, t0)
     return 0
 
 

@@ -33,8 +33,7 @@ import numpy as np
 from robustness import MODEL, filter_arg, recipe_drives, resimulate
 
 from prml2_edge import schema
-from prml2_edge.bench.machine import machine_info
-from prml2_edge.bench.results import write_json
+from prml2_edge.bench.results import announce, finish
 from prml2_edge.data.simulate.fleet import CARS as FLEET
 from prml2_edge.evaluation.protocol import InMemorySplits, ModelSpec, localizer_for, split_tasks, start_state
 from prml2_edge.evaluation.unit_history import HISTORY_MINUTES
@@ -107,8 +106,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"no {args.split} drive of --cars {args.cars!r} in the benchmark recipe; its fleet is "
                  f"{', '.join(FLEET)}")
     t0 = time.monotonic()
-    machine = machine_info()
-    print(f"[offset_learning] {machine['cpu_model']}, flags {' '.join(machine['flags'])}", file=sys.stderr)
+    machine = announce("offset_learning")
     spec = ModelSpec("PRML2", "onnx", str(args.model), calibration=True, filter=tuple(args.filter))
     jobs = [(spec, s, args.offset_dps, args.minutes) for s in specs]
     bar = Progress(len(jobs), desc="offset learning", unit="drive")
@@ -120,10 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     bar.close()
     doc = {"machine": machine, "args": vars(args), "model": str(args.model), "split": args.split,
            "offset_dps": args.offset_dps, "drives": drives, "by_car": summarise(drives)}
-    doc["wall_s"] = round(time.monotonic() - t0, 1)
-    print("\n".join(markdown(doc)))
-    out = write_json(doc, args.json)
-    print(f"wrote {out} ({doc['wall_s']} s)")
+    finish(doc, args.json, markdown, t0)
     return 0
 
 

@@ -38,8 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from prml2_edge import schema
-from prml2_edge.bench.machine import machine_info
-from prml2_edge.bench.results import write_json
+from prml2_edge.bench.results import announce, finish
 from prml2_edge.data.simulate.fleet import CARS as FLEET
 from prml2_edge.data.simulate.fleet import get_car
 
@@ -153,15 +152,11 @@ def main(argv: list[str] | None = None) -> int:
     drives = [resimulate(s, OFFSET_DPS, None) for g in ("test", "heldout") for s in specs[g]]
     if not drives:
         ap.error(f"no test drive of --cars {args.cars!r} in the benchmark recipe; its fleet is {', '.join(FLEET)}")
-    machine = machine_info()
-    print(f"[offset_observability] {machine['cpu_model']}, flags {' '.join(machine['flags'])}", file=sys.stderr)
+    machine = announce("offset_observability")
     doc = {"machine": machine, "args": vars(args), "offset_dps": OFFSET_DPS,
            "drives": [d.name for d in drives], "straight_below_dps": STRAIGHT_DPS, "min_speed_mps": MIN_SPEED_MPS,
            "windows": measure(drives, math.radians(OFFSET_DPS))}
-    doc["wall_s"] = round(time.monotonic() - t0, 1)
-    print("\n".join(markdown(doc)))
-    out = write_json(doc, args.json)
-    print(f"wrote {out} ({doc['wall_s']} s)")
+    finish(doc, args.json, markdown, t0)
     return 0
 
 

@@ -49,7 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from prml2_edge.bench.machine import machine_info
-from prml2_edge.bench.results import write_json
+from prml2_edge.bench.results import finish
 from prml2_edge.data.datasets import resolve_recipe
 from prml2_edge.data.simulate import simulate_drive
 from prml2_edge.evaluation.metrics import dr_summary, paired_comparison
@@ -316,10 +316,7 @@ def main(argv: list[str] | None = None) -> int:
            "groups": report(results, tasks, specs)}
     doc["verdict"] = verdict(doc["groups"])
     doc["targets_met"] = {k: all(v[k] for v in doc["verdict"].values()) for k in ("meets_1_3", "meets_osd")}
-    doc["wall_s"] = round(time.monotonic() - t0, 1)
-    print("\n".join(markdown(doc)))
-    out = write_json(doc, args.json)
-    print(f"wrote {out}")
+    finish(doc, args.json, markdown, t0)
     return 0
 
 

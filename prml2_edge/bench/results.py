@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import sys
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -23,4 +26,24 @@ def write_json(doc: dict, path: str | Path, indent: int = 1) -> Path:
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(doc, indent=indent, default=_plain) + "\n")
+    return out
+
+
+def announce(name: str) -> dict:
+    """The machine's description (:func:`~prml2_edge.bench.machine.machine_info`), after saying on stderr which CPU
+    and flags run benchmark ``name``: numbers from different machines are not comparable."""
+    from prml2_edge.bench.machine import machine_info
+
+    machine = machine_info()
+    print(f"[{name}] {machine['cpu_model']}, flags {' '.join(machine['flags'])}", file=sys.stderr)
+    return machine
+
+
+def finish(doc: dict, path: str | Path, markdown: Callable[[dict], list[str]], t0: float) -> Path:
+    """End a benchmark: ``doc["wall_s"]`` from ``t0`` (``time.monotonic()`` at its start), ``doc`` written to
+    ``path``, its ``markdown(doc)`` printed and where it went; returns the path."""
+    doc["wall_s"] = round(time.monotonic() - t0, 1)
+    out = write_json(doc, path)
+    print("\n".join(markdown(doc)))
+    print(f"wrote {out} ({doc['wall_s']:.0f} s)")
     return out
