@@ -81,6 +81,11 @@ def markdown(doc: dict) -> list[str]:
     for car, row in doc["by_car"].items():
         name = f"**{car}**" if car == "all" else car
         out.append(f"| {name} | " + " | ".join(f"{row[m]:.2f}" if m in row else "–" for m in marks) + " |")
+    reach = [sum(m in d["learned_dps"] for d in doc["drives"]) for m in marks]
+    out.append("| drives that reach it | " + " | ".join(str(n) for n in reach) + " |")
+    if len(set(reach) - {0}) > 1:
+        out += ["", "A later mark averages only the drives that last that long, so a column may differ from the one "
+                "before it by which drives it holds, not by learning."]
     return out
 
 

@@ -26,7 +26,8 @@ def test_the_offset_estimate_is_read_at_the_marks_each_drive_reaches(tmp_path, c
     share = doc["by_car"]["city_fwd"]["1"]
     assert share == pytest.approx(sum(d["learned_dps"]["1"] for d in doc["drives"]) / 2 / 0.4)
     assert doc["by_car"]["all"] == doc["by_car"]["city_fwd"]
-    assert "| city_fwd |" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "| city_fwd |" in printed and "| drives that reach it | 2 | 2 | 0 | 0 | 0 |" in printed
 
 
 @pytest.mark.parametrize("argv, message", [(["--offset-dps", "0"], "nothing to learn"),
