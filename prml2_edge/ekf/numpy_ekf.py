@@ -370,13 +370,20 @@ class Ekf:
 
     def update_wheel_scale(self, scale: float, var: float) -> StepStatus:
         """A direct measurement of the wheel scale (GNSS distance against wheel distance, runtime/filter.py)."""
+        return self._update_cal_state(_K_WHEEL, scale, var)
+
+    def update_yaw_offset(self, offset: float, var: float) -> StepStatus:
+        """A direct measurement of the CAN yaw-rate offset [rad/s] (the other cues' opinion, runtime/cue_offset.py)."""
+        return self._update_cal_state(_B_YAW, offset, var)
+
+    def _update_cal_state(self, index: int, value: float, var: float) -> StepStatus:
         if not self.calibration:
             raise RuntimeError("no calibration states: Ekf(calibration=True)")
-        if not (math.isfinite(scale) and math.isfinite(var) and var > 0.0):
+        if not (math.isfinite(value) and math.isfinite(var) and var > 0.0):
             return StepStatus.INPUT_INVALID
         with np.errstate(all="ignore"):
-            idx = np.array([_K_WHEEL], dtype=np.intp)
-            x, p = _update_selected(self.x, self.P, idx, np.array([scale - self.x[_K_WHEEL]]), np.array([var]))
+            idx = np.array([index], dtype=np.intp)
+            x, p = _update_selected(self.x, self.P, idx, np.array([value - self.x[index]]), np.array([var]))
             return self._commit(x, p, StepStatus.SUCCESS)
 
     @property

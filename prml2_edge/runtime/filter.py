@@ -40,6 +40,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import CalibrationNoise, CalibrationStd, Ekf, StepStatus
+from prml2_edge.runtime.cue_offset import CueOffset
 from prml2_edge.runtime.estimator import Estimate
 from prml2_edge.runtime.filter_gnss import GnssFusion
 from prml2_edge.runtime.gnss_check import FixNoise, GnssCheck, GnssCheckConfig
@@ -131,6 +132,9 @@ class PoseFilter(GnssFusion):
         self._cue_axle_drives = axle == "all"
         if axle == "rear":
             self._axle_speed = functools.partial(_front_speed, steering_ratio=float(config.steering_ratio))
+        # the gyro's offset from the other cues (runtime/cue_offset.py): over drives' minutes, so kept across restarts
+        self.cue_offset = CueOffset(config.cal_yaw_offset_prior_std_radps, config.steering_ratio, dt_s=self.dt_s) \
+            if self.calibrated and getattr(config, "cue_offset", False) else None
         self.reset()
 
     def reset(self) -> None:
@@ -198,6 +202,8 @@ class PoseFilter(GnssFusion):
                                               cfg.cal_model_bias_std_radps) if self.calibrated else None)
         if self.calibrated and self.calibration0 is not None:
             self.ekf.set_calibration(*self.calibration0)
+        if self.cue_offset is not None:
+            self.cue_offset.restart_export()  # the new EKF has heard nothing of it yet
         self._last_abs_t = t_s
         self.gnss_check.reset()
 
@@ -235,6 +241,8 @@ class PoseFilter(GnssFusion):
                                                                                   substitute_std))
             standstill = still and self._zero_velocity()
             self._odometry(values, valid)
+            if self.cue_offset is not None and (substituted is None or not substituted[_YAW_RATE]):
+                self._cue_offset_row(values, valid)
         else:
             ekf_status = self.ekf.step(z, z_var)
         model_used = ekf_status is StepStatus.SUCCESS
@@ -439,6 +447,13 @@ class PoseFilter(GnssFusion):
         if w is not None and w >= cfg.cue_min_speed_mps:
             wheel = w
         return yaw, yaw_var, wheel, cfg.wheel_cue_std_mps ** 2
+
+    def _cue_offset_row(self, values: np.ndarray, valid: np.ndarray) -> None:
+        """This row to the cues' offset estimate; what it learned, when it closes a block, to the offset state."""
+        if self.cue_offset.row(values, valid, self.yaw_gain_factor):  # type: ignore[union-attr]
+            measured = self.cue_offset.export()  # type: ignore[union-attr]
+            if measured is not None:
+                self.ekf.update_yaw_offset(*measured)  # type: ignore[union-attr]
 
     def _still(self, values: np.ndarray, valid: np.ndarray, t_s: float) -> bool:
         """Standstill: every valid wheel speed 0 (and the speedometer) for ``standstill_hold_s``."""

@@ -133,6 +133,10 @@ class LocalizerConfig:
     # yaw_gain_max_resolution (the 1.28 deg/s ReV-StED sensor's quantisation follows the turn: its fit left ~1 %).
     yaw_gain_calibration: bool = True
     yaw_gain_max_resolution_radps: float = 1.0 * schema.DEG_TO_RAD
+    # The CAN yaw rate's offset from the cues that do not contain the gyro (a_y / v, the rear wheels, the steering,
+    # each with an offset of its own: runtime/cue_offset.py), while driving straight, fused into the offset state:
+    # learned over minutes with no stop and no GNSS, where a model that reads the gyro passes its offset through.
+    cue_offset: bool = False
 
     def __post_init__(self) -> None:
         if self.stride < 1:

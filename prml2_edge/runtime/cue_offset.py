@@ -1,0 +1,151 @@
+"""The CAN yaw rate's offset from the other yaw-rate cues while driving, with no stop and no GNSS (issue 26).
+
+A model that reads the gyro passes its offset through, so the gyro against the model says nothing of it next to a fine
+gyro (``benchmarks/offset_learning.py``). Three cues in the CAN signals do not contain the gyro, each with a slow
+error of its own that has its own shape in speed (``benchmarks/offset_observability.py``):
+
+* ``a_y / v`` (lateral acceleration over the rear-axle speed): an accelerometer offset ``c`` gives ``c / v``;
+* the rear wheels' difference over the track: a rolling-radius difference gives ``k v``;
+* the kinematic single-track steering rate: a steering-wheel offset gives about ``d v``.
+
+The gyro's offset ``b`` is a constant, so over minutes of driving at varying speed it separates from the rest.
+:class:`CueOffset` is a linear Kalman filter over ``θ = (b, c, k, d)``: per block of ``block_s`` seconds of
+near-straight moving rows (every row above ``min_speed_mps`` with ``|a_y|`` under ``max_lat_accel_mps2``; the
+steering rate's understeer and the geometry's unknowns vanish there), the block means of gyro − cue are three
+measurements::
+
+    gyro − a_y / v      = b − c · mean(1 / v)
+    gyro − rear wheels  = b − k · mean(v)
+    gyro − steering     = b − d · mean(v)
+
+Track and wheelbase need not be known: off the straights their error scales the yaw rate, which is near 0 there, and
+the offsets' slopes ``k`` and ``d`` [rad/m] are learned as they are. :meth:`CueOffset.export` hands what it has
+learned of ``b`` since the last export to the pose filter as one measurement (the information it gained, so that
+nothing is counted twice), where it meets the CAN yaw-rate offset state.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from prml2_edge import schema
+
+_SIG = schema.SIGNAL_BY_NAME
+_YAW, _AY, _STEER = (_SIG[n].index for n in ("yaw_rate_radps", "lat_accel_mps2", "steering_wheel_angle_rad"))
+_RL, _RR = _SIG["wheel_speed_rl_mps"].index, _SIG["wheel_speed_rr_mps"].index
+_NEEDED = (_YAW, _AY, _STEER, _RL, _RR)
+NOMINAL_TRACK_M = 1.55
+NOMINAL_WHEELBASE_M = 2.7
+
+
+@dataclass(frozen=True)
+class CueOffsetConfig:
+    """The estimator's settings, SI units; chosen on the validation drives (docs/evaluation.md)."""
+
+    block_s: float = 2.0
+    min_speed_mps: float = 5.0
+    max_lat_accel_mps2: float = 0.5
+    # one block's mean of gyro − cue about the cue's offset term (slip, sideslip, understeer, road and sensor
+    # noise), per cue: a_y / v, rear wheels, steering. The rows' scatter on val's straights (0.1 / 0.5 / 0.4 °/s)
+    # lasts longer than a block, so it is not divided down
+    block_std_radps: tuple[float, float, float] = (0.15 * schema.DEG_TO_RAD, 0.5 * schema.DEG_TO_RAD,
+                                                   0.5 * schema.DEG_TO_RAD)
+    # the cues' own offsets, one sigma: a_y [m/s^2], rear radius difference over the track [rad/m], steering [rad/m]
+    prior_std: tuple[float, float, float] = (0.3, 0.015 / NOMINAL_TRACK_M,
+                                             4.0 * schema.DEG_TO_RAD / (15.0 * NOMINAL_WHEELBASE_M))
+    # random walk of every state per second (the gyro's offset drifts with temperature, the tyres warm up)
+    psd: tuple[float, float, float, float] = (2.2e-11, 1e-8, 1e-12, 1e-12)
+    min_gain: float = 0.5  # an export needs this much information on b, in units of its prior's
+
+
+class CueOffset:
+    """The linear filter over ``(b, c, k, d)`` (module docstring); :meth:`row` once per 50 Hz step."""
+
+    DIM = 4
+
+    def __init__(self, b_prior_std_radps: float, steering_ratio: float, config: CueOffsetConfig | None = None,
+                 dt_s: float = schema.DT_S) -> None:
+        self.config = config or CueOffsetConfig()
+        self.steering_ratio = float(steering_ratio)
+        self.dt_s = float(dt_s)
+        self._block_rows = max(1, int(round(self.config.block_s / self.dt_s)))
+        self._prior = np.diag(np.square((float(b_prior_std_radps),) + tuple(self.config.prior_std)))
+        self._R = np.diag(np.square(self.config.block_std_radps))
+        self.reset()
+
+    def reset(self) -> None:
+        self.theta = np.zeros(self.DIM)
+        self.P = self._prior.copy()
+        self._sums = np.zeros(5)  # gyro − a_y/v, gyro − rear, gyro − steering, 1/v, v
+        self._n = 0
+        self.blocks = 0
+        self.restart_export()  # (b, var) at the last export
+
+    def restart_export(self) -> None:
+        """The next :meth:`export` hands over everything learned (to a filter that starts again from its prior)."""
+        self._exported = (0.0, float(self._prior[0, 0]))
+
+    @property
+    def offset(self) -> tuple[float, float]:
+        """``(b, its standard deviation)`` [rad/s]."""
+        return float(self.theta[0]), math.sqrt(max(float(self.P[0, 0]), 0.0))
+
+    def row(self, values: np.ndarray, valid: np.ndarray, yaw_gain: float = 1.0) -> bool:
+        """One step's CAN signals; True when it closed a block and updated the estimate. A row that does not
+        qualify (slow, turning, a signal missing) ends the block it would have joined."""
+        v = self._straight_speed(values, valid)
+        if v is None:
+            self._sums[:] = 0.0
+            self._n = 0
+            return False
+        gyro = float(values[_YAW]) * yaw_gain
+        steer = v * math.tan(float(values[_STEER]) / self.steering_ratio) / NOMINAL_WHEELBASE_M
+        rear = (float(values[_RR]) - float(values[_RL])) / NOMINAL_TRACK_M
+        self._sums += (gyro - float(values[_AY]) / v, gyro - rear, gyro - steer, 1.0 / v, v)
+        self._n += 1
+        if self._n < self._block_rows:
+            return False
+        means = self._sums / self._n
+        self._sums[:] = 0.0
+        self._n = 0
+        self._update(means)
+        return True
+
+    def _straight_speed(self, values: np.ndarray, valid: np.ndarray) -> float | None:
+        cfg = self.config
+        if not all(valid[i] for i in _NEEDED):
+            return None
+        v = (float(values[_RL]) + float(values[_RR])) / 2
+        if not (v >= cfg.min_speed_mps and abs(float(values[_AY])) <= cfg.max_lat_accel_mps2):
+            return None
+        return v
+
+    def _update(self, means: np.ndarray) -> None:
+        dt = self._block_rows * self.dt_s
+        self.P = self.P + np.diag(self.config.psd) * dt
+        inv_v, v = means[3], means[4]
+        H = np.array([[1.0, -inv_v, 0.0, 0.0], [1.0, 0.0, -v, 0.0], [1.0, 0.0, 0.0, -v]])
+        y = means[:3] - H @ self.theta
+        S = H @ self.P @ H.T + self._R
+        K = np.linalg.solve(S, H @ self.P).T
+        self.theta = self.theta + K @ y
+        I_KH = np.eye(self.DIM) - K @ H
+        self.P = I_KH @ self.P @ I_KH.T + K @ self._R @ K.T
+        self.blocks += 1
+
+    def export(self) -> tuple[float, float] | None:
+        """What was learned of ``b`` since the last export as one measurement ``(value, variance)`` [rad/s,
+        rad^2/s^2]: the marginal's information gain and the value that carries it; None while the gain is under
+        ``min_gain`` of the prior's information."""
+        b, var = float(self.theta[0]), float(self.P[0, 0])
+        b0, var0 = self._exported
+        gain = 1.0 / var - 1.0 / var0
+        if gain < self.config.min_gain / float(self._prior[0, 0]):
+            if gain < 0.0:
+                self._exported = (b, var)  # drifted: what was exported is older than the estimate's memory
+            return None
+        self._exported = (b, var)
+        return (b / var - b0 / var0) / gain, 1.0 / gain

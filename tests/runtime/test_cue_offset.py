@@ -1,0 +1,93 @@
+"""The gyro's offset from the cues that do not contain it (runtime/cue_offset.py), on rows with known errors."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from prml2_edge import schema
+from prml2_edge.ekf.numpy_ekf import Ekf
+from prml2_edge.runtime.cue_offset import NOMINAL_TRACK_M, NOMINAL_WHEELBASE_M, CueOffset
+from prml2_edge.schema import EkfState
+
+_SIG = schema.SIGNAL_BY_NAME
+RATIO = 15.0
+
+
+def rows(n: int, b: float, c: float, k: float, d: float, seed: int = 0, a_y: float = 0.0, speed: float = 15.0):
+    """``n`` 50 Hz rows driving straight at a speed swinging about ``speed`` (by 8 m/s or half of it) over a
+    minute, the gyro offset ``b`` [rad/s], a_y offset ``c`` [m/s^2] (plus ``a_y`` of true lateral acceleration), a
+    rear radius difference of ``k`` [rad/m] and a steering offset of ``d`` [rad/m]; noise on the gyro and a_y."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * schema.DT_S
+    v = speed + min(8.0, speed / 2) * np.sin(2 * math.pi * t / 60.0)
+    out = np.zeros((n, schema.NUM_SIGNALS))
+    out[:, _SIG["yaw_rate_radps"].index] = b + rng.normal(0.0, math.radians(0.1), n)
+    out[:, _SIG["lat_accel_mps2"].index] = a_y + c + rng.normal(0.0, 0.05, n)
+    out[:, _SIG["wheel_speed_rl_mps"].index] = v - k * NOMINAL_TRACK_M * v / 2
+    out[:, _SIG["wheel_speed_rr_mps"].index] = v + k * NOMINAL_TRACK_M * v / 2
+    out[:, _SIG["steering_wheel_angle_rad"].index] = RATIO * math.atan(d * NOMINAL_WHEELBASE_M)
+    return out
+
+
+def feed(est: CueOffset, values: np.ndarray) -> list[tuple[float, float]]:
+    valid = np.ones(values.shape[1], dtype=bool)
+    exports = []
+    for row in values:
+        if est.row(row, valid):
+            e = est.export()
+            if e is not None:
+                exports.append(e)
+    return exports
+
+
+def test_the_offset_is_told_from_the_cues_own_errors_over_minutes_of_driving() -> None:
+    b, c, k, d = math.radians(0.4), 0.2, 0.004, 0.001  # each cue alone would call b wrong by more than b
+    assert abs(c / 15.0) > b and k * 15.0 > b and d * 15.0 > b
+    est = CueOffset(math.radians(0.5), RATIO)
+    feed(est, rows(5 * 60 * 50, b, c, k, d))
+    got, std = est.offset
+    assert abs(got - b) < math.radians(0.05)
+    assert abs(got - b) < 3 * std
+    assert est.theta[1:] == pytest.approx([c, k, d], rel=0.2)
+
+
+def test_turning_slow_or_missing_rows_teach_nothing() -> None:
+    b = math.radians(0.4)
+    for values, valid in ((rows(3000, b, 0, 0, 0, a_y=2.0), None),  # cornering: understeer, slip
+                          (rows(3000, b, 0, 0, 0, speed=3.0), None),  # crawling
+                          (rows(3000, b, 0, 0, 0), _SIG["steering_wheel_angle_rad"].index)):
+        est = CueOffset(math.radians(0.5), RATIO)
+        ok = np.ones(values.shape[1], dtype=bool)
+        if valid is not None:
+            ok[valid] = False
+        for row in values:
+            est.row(row, ok)
+        assert est.blocks == 0 and est.offset[0] == 0.0
+
+
+def test_exports_hand_over_the_information_once() -> None:
+    """Fused one after another into a state that starts at the prior, the exports give the estimator's own b and
+    variance: nothing is counted twice, however often it exports."""
+    prior = math.radians(0.5)
+    est = CueOffset(prior, RATIO)
+    exports = feed(est, rows(3 * 60 * 50, math.radians(-0.3), 0.1, 0.002, -0.0005, seed=1))
+    assert len(exports) > 3
+    x, p = 0.0, prior ** 2
+    for m, r in exports:
+        g = p / (p + r)
+        x, p = x + g * (m - x), (1 - g) * p
+    b, std = est.offset
+    assert x == pytest.approx(b, abs=math.radians(0.01))
+    assert math.sqrt(p) == pytest.approx(std, rel=0.1)
+
+
+def test_the_ekf_takes_the_offset_as_a_measurement_of_its_state() -> None:
+    ekf = Ekf(np.zeros(EkfState.DIM), np.eye(EkfState.DIM), calibration=True)
+    before = ekf.cal_cov[0, 0]
+    ekf.update_yaw_offset(0.007, 1e-6)
+    assert ekf.cal[0] == pytest.approx(0.007 * before / (before + 1e-6))
+    assert ekf.cal_cov[0, 0] < before
+    assert ekf.update_yaw_offset(float("nan"), 1e-6).name == "INPUT_INVALID"
