@@ -42,13 +42,13 @@ from prml2_edge.schema import CalState
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "results" / "offset_learning.json"
-MARKS_MIN = (0.5, 1.0, 2.0, 3.0, 5.0)
+MARKS_MIN = (0.5, 1.0, 2.0, 3.0, 5.0, 8.0)
 
 
 def learn(args: tuple) -> dict:
     """Worker: one re-simulated drive through the runtime's filter with no fixes; the offset estimate at the marks."""
-    spec, drive_spec, offset_dps, minutes = args
-    drive = resimulate(drive_spec, offset_dps, minutes)
+    spec, drive_spec, offset_dps, minutes, extend = args
+    drive = resimulate(drive_spec, offset_dps, minutes, extend)
     rows = len(drive.t_s)
     window_s = (rows - schema.WINDOW_LEN) * schema.DT_S  # one window: the whole drive after the model's history
     task = split_tasks(InMemorySplits({"run": [drive]}), "run", window_s=window_s, history_min=HISTORY_MINUTES)[0]
@@ -95,7 +95,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--offset-dps", type=float, default=0.4, help="the CAN yaw-rate offset [deg/s]")
     ap.add_argument("--split", choices=("val", "test"), default="val", help="the recipe's dry drives of this split")
     ap.add_argument("--cars", default=None, help="comma-separated cars (default: the whole fleet)")
-    ap.add_argument("--minutes", type=float, default=None, help="cut every drive to at most this long [min]")
+    length = ap.add_mutually_exclusive_group()
+    length.add_argument("--minutes", type=float, default=None, help="cut every drive to at most this long [min]")
+    length.add_argument("--drive-minutes", type=float, default=None,
+                        help="re-simulate every drive this long instead (its seed driven on; the recipe's val "
+                             "drives last 3-4 min, the offset takes minutes to learn)")
     ap.add_argument("--filter", action="append", default=[], type=filter_arg, metavar="FIELD=VALUE",
                     help="a LocalizerConfig field of the runtime's filter changed (repeatable)")
     ap.add_argument("--workers", type=int, default=2)
@@ -113,7 +117,10 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.monotonic()
     machine = announce("offset_learning")
     spec = ModelSpec("PRML2", "onnx", str(args.model), calibration=True, filter=tuple(args.filter))
-    jobs = [(spec, s, args.offset_dps, args.minutes) for s in specs]
+    if args.drive_minutes is not None and not args.drive_minutes > 0.5:
+        ap.error(f"--drive-minutes {args.drive_minutes:g} reaches no mark: give more than 0.5 (the first)")
+    extend = args.drive_minutes is not None
+    jobs = [(spec, s, args.offset_dps, args.drive_minutes if extend else args.minutes, extend) for s in specs]
     bar = Progress(len(jobs), desc="offset learning", unit="drive")
     with ProcessPoolExecutor(max(1, args.workers)) as pool:
         drives = []

@@ -97,9 +97,10 @@ def recipe_drives(cars: list[str] | None) -> dict[str, list[dict]]:
     return out
 
 
-def resimulate(spec: dict, offset_dps: float, minutes: float | None):
-    """``spec`` again without standstill and with the CAN yaw-rate offset set to ``offset_dps``."""
-    m = spec["minutes"] if minutes is None else min(spec["minutes"], minutes)
+def resimulate(spec: dict, offset_dps: float, minutes: float | None, extend: bool = False):
+    """``spec`` again without standstill and with the CAN yaw-rate offset set to ``offset_dps``; cut to ``minutes``,
+    or with ``extend`` driven that long (the same seed: the same car, sensor errors and road, driven on)."""
+    m = spec["minutes"] if minutes is None else minutes if extend else min(spec["minutes"], minutes)
     return simulate_drive(m, spec["mu"], spec["seed"], spec["family"], name=spec["name"], vehicle=spec["vehicle"],
                           standstill=False, sensor_errors={"yaw_offset_radps": math.radians(offset_dps)})
 
