@@ -40,6 +40,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import CalibrationNoise, CalibrationStd, Ekf, StepStatus
+from prml2_edge.runtime.axle_speed import front_speed, rear_speed
 from prml2_edge.runtime.cue_offset import CueOffset
 from prml2_edge.runtime.estimator import Estimate
 from prml2_edge.runtime.filter_gnss import GnssFusion
@@ -54,32 +55,11 @@ _SIG = schema.SIGNAL_BY_NAME
 _YAW_RATE = _SIG["yaw_rate_radps"].index
 _SPEEDO = _SIG["speedometer_mps"].index
 _LAT_ACCEL = _SIG["lat_accel_mps2"].index
-_REAR = np.array([_SIG["wheel_speed_rl_mps"].index, _SIG["wheel_speed_rr_mps"].index])
 _WHEELS = np.array(schema.WHEEL_SPEED_INDICES)
-_RL, _RR = (int(i) for i in _REAR)
-_FL, _FR = _SIG["wheel_speed_fl_mps"].index, _SIG["wheel_speed_fr_mps"].index
-_STEER = _SIG["steering_wheel_angle_rad"].index
 _WHEEL_LIST = [int(i) for i in _WHEELS]
 _YAW, _OMEGA, _VX = EkfState.YAW.start, EkfState.OMEGA_Z.start, EkfState.VEL.start
 _AX = EkfState.ACC.start
 _RESOLUTION_WINDOW = 200  # steps between distinct yaw-rate readings kept for the resolution estimate
-
-
-def _rear_speed(values: np.ndarray, valid: np.ndarray) -> float | None:
-    """Mean rear-axle wheel speed [m/s] (``np.mean`` of the two: their sum over 2), None unless both are valid.
-    On Python floats: the filter asks for it twice a step, and NumPy's call cost on 2 elements dominated."""
-    if not (valid[_RL] and valid[_RR]):
-        return None
-    return (float(values[_RL]) + float(values[_RR])) / 2
-
-
-def _front_speed(values: np.ndarray, valid: np.ndarray, steering_ratio: float) -> float | None:
-    """Mean front-axle wheel speed as v_x [m/s], None unless both wheels and the steering angle are valid. The
-    steered wheels roll along their own heading, v_x / cos(delta) on a kinematic single track, so the mean is
-    multiplied by cos(delta), delta = steering wheel angle / ``steering_ratio``."""
-    if not (valid[_FL] and valid[_FR] and valid[_STEER]):
-        return None
-    return (float(values[_FL]) + float(values[_FR])) / 2 * math.cos(float(values[_STEER]) / steering_ratio)
 
 
 def yaw_cue_var(config, resolution_radps: float) -> float:
@@ -128,10 +108,10 @@ class PoseFilter(GnssFusion):
         # the wheel cue's speed (values, valid) -> m/s or None: the axle that does not drive (an AWD car keeps the
         # rear: all four slip); LocalizerConfig checks driven_axle
         axle = getattr(config, "driven_axle", "front")
-        self._axle_speed = _rear_speed
+        self._axle_speed = rear_speed
         self._cue_axle_drives = axle == "all"
         if axle == "rear":
-            self._axle_speed = functools.partial(_front_speed, steering_ratio=float(config.steering_ratio))
+            self._axle_speed = functools.partial(front_speed, steering_ratio=float(config.steering_ratio))
         # the gyro's offset from the other cues (runtime/cue_offset.py): over drives' minutes, so kept across restarts
         self.cue_offset = CueOffset(config.cal_yaw_offset_prior_std_radps, config.steering_ratio, dt_s=self.dt_s) \
             if self.calibrated and getattr(config, "cue_offset", False) else None

@@ -313,7 +313,7 @@ def test_a_rear_driven_car_takes_its_wheel_cue_from_the_free_rolling_front_axle(
 def test_the_front_axle_cue_is_steer_corrected():
     """Steered front wheels roll along their own heading at v_x / cos(delta) (kinematic single track): the cue is
     their mean times cos(steering wheel angle / steering ratio); a missing steering angle means no cue."""
-    from prml2_edge.runtime.filter import _front_speed
+    from prml2_edge.runtime.axle_speed import front_speed
 
     sig = schema.SIGNAL_BY_NAME
     values, valid = np.zeros(schema.NUM_SIGNALS), np.ones(schema.NUM_SIGNALS, dtype=bool)
@@ -321,9 +321,9 @@ def test_the_front_axle_cue_is_steer_corrected():
     values[sig["steering_wheel_angle_rad"].index] = 15.0 * delta
     values[sig["wheel_speed_fl_mps"].index] = 4.9 / np.cos(delta)
     values[sig["wheel_speed_fr_mps"].index] = 5.1 / np.cos(delta)
-    assert _front_speed(values, valid, 15.0) == pytest.approx(5.0)
+    assert front_speed(values, valid, 15.0) == pytest.approx(5.0)
     valid[sig["steering_wheel_angle_rad"].index] = False
-    assert _front_speed(values, valid, 15.0) is None
+    assert front_speed(values, valid, 15.0) is None
 
 
 def test_an_unknown_driven_axle_is_refused():
