@@ -82,6 +82,7 @@ class CueOffset:
         self._sums = np.zeros(5)  # gyro − a_y/v, gyro − rear, gyro − steering, 1/v, v
         self._n = 0
         self.blocks = 0
+        self._nis_sum = np.zeros(3)  # per cue: innovation squared over its predicted variance, summed over blocks
         self.restart_export()  # (b, var) at the last export
 
     def restart_export(self) -> None:
@@ -131,10 +132,23 @@ class CueOffset:
         y = means[:3] - H @ self.theta
         S = H @ self.P @ H.T + self._R
         K = np.linalg.solve(S, H @ self.P).T
+        self._nis_sum += y * y / np.diag(S)
         self.theta = self.theta + K @ y
         I_KH = np.eye(self.DIM) - K @ H
         self.P = I_KH @ self.P @ I_KH.T + K @ self._R @ K.T
         self.blocks += 1
+
+    @property
+    def nis(self) -> np.ndarray:
+        """Per cue (a_y / v, rear wheels, steering): the mean normalised innovation squared over the blocks so far
+        (about 1 where ``block_std_radps`` states the blocks' scatter rightly; NaN before the first block)."""
+        return self._nis_sum / self.blocks if self.blocks else np.full(3, np.nan)
+
+    def summary(self) -> dict:
+        """For the run's summary: the blocks used, the offset the cues tell with its sigma [deg/s] and the NIS."""
+        b, std = self.offset
+        return {"blocks": self.blocks, "yaw_rate_offset_dps": math.degrees(b), "yaw_rate_offset_std_dps":
+                math.degrees(std), "nis": [round(float(x), 3) for x in self.nis]}
 
     def export(self) -> tuple[float, float] | None:
         """What was learned of ``b`` since the last export as one measurement ``(value, variance)`` [rad/s,

@@ -489,4 +489,6 @@ class PoseFilter(GnssFusion):
                 "yaw_rate_resolution_dps": math.degrees(self.yaw_resolution_radps)}
             if self._gain_on:
                 out["calibration"].update(self.yaw_gain.summary())
+            if self.cue_offset is not None:
+                out["calibration"]["cue_offset"] = self.cue_offset.summary()
         return out

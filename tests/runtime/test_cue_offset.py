@@ -91,3 +91,44 @@ def test_the_ekf_takes_the_offset_as_a_measurement_of_its_state() -> None:
     assert ekf.cal[0] == pytest.approx(0.007 * before / (before + 1e-6))
     assert ekf.cal_cov[0, 0] < before
     assert ekf.update_yaw_offset(float("nan"), 1e-6).name == "INPUT_INVALID"
+
+
+def test_the_summary_says_what_the_cues_told() -> None:
+    est = CueOffset(math.radians(0.5), RATIO)
+    assert est.summary()["blocks"] == 0 and all(math.isnan(x) for x in est.summary()["nis"])
+    feed(est, rows(60 * 50, math.radians(0.4), 0.0, 0.0, 0.0))
+    s = est.summary()
+    assert s["blocks"] == 30 and s["yaw_rate_offset_dps"] == pytest.approx(0.4, abs=0.1)
+    assert all(0.0 < x < 5.0 for x in s["nis"])
+
+
+@pytest.fixture(scope="module")
+def offset_drive():
+    """Three minutes of a fine-gyro car with no stop and an uncalibrated +0.4 deg/s on its CAN yaw rate."""
+    from prml2_edge.data.simulate import simulate_drive
+
+    return simulate_drive(3.0, 1.0, 4242, "mixed", name="no_stop", vehicle="compact_fwd", standstill=False,
+                          sensor_errors={"yaw_offset_radps": math.radians(0.4)})
+
+
+@pytest.mark.parametrize("cues", [True, False])
+def test_the_filter_learns_a_fine_gyros_offset_while_driving_only_from_the_cues(tmp_path, offset_drive, cues):
+    """A model that reads the gyro (here the closed-form one: its omega_z is the gyro) passes the offset through:
+    without the cues the filter learns next to nothing of it in three minutes; with them most of it."""
+    from runtime_models import make_kinematic_model
+
+    from prml2_edge.runtime.inference import OnnxModel
+    from prml2_edge.runtime.localizer import LocalizerConfig, StreamingLocalizer
+
+    loc = StreamingLocalizer(OnnxModel(make_kinematic_model(tmp_path / "k.onnx")), LocalizerConfig(cue_offset=cues))
+    start = schema.WINDOW_LEN - 1
+    x0 = np.zeros(EkfState.DIM)
+    x0[EkfState.VEL.start] = offset_drive.onboard[start, _SIG["wheel_speed_rl_mps"].index]
+    traj = loc.run_arrays(offset_drive.onboard, x0, start_index=start, gnss={})
+    learned = math.degrees(traj.cal[-1, 0])
+    if cues:
+        assert abs(learned - 0.4) < 0.15
+        assert loc.filter.summary()["calibration"]["cue_offset"]["blocks"] > 20
+    else:
+        assert abs(learned) < 0.15
+        assert "cue_offset" not in loc.filter.summary()["calibration"]
