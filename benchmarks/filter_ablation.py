@@ -19,8 +19,11 @@ so each row differs from the next by one choice only, on the same windows. Varia
   resolution step and 3 sigma of the reading less the offset estimate (the runtime's default before the gain);
 * ``+ gyro gain learned over the unit's earlier drives``: the CAN yaw rate divided by ``1 +`` the gain its
   calibration file learned from GNSS heading on 20 min of the car's earlier drives
-  (``prml2_edge.evaluation.unit_history``, ``runtime/yaw_gain.py``; the runtime's default). Every row above has
-  the gain calibration off.
+  (``prml2_edge.evaluation.unit_history``, ``runtime/yaw_gain.py``; the runtime's default before the cues). Every
+  row above has the gain calibration off;
+* ``+ the gyro's offset from the other cues while driving``: a_y / v, the rear wheels and the steering, each with an
+  offset of its own, tell the CAN yaw rate's offset on straights (``runtime/cue_offset.py``; the runtime's
+  default). Every row above has it off.
 
 Every calibrated row also starts from the wheel scale the car's simulated earlier drives taught its calibration file
 (``evaluation.unit_history.wheel_scale_evidence``), except ``the default without the wheel scale from the unit's
@@ -86,13 +89,15 @@ OUT = HERE / "results" / "filter_ablation.json"
 OSD = "OSD-Baseline"
 DEG = np.pi / 180.0
 HELD = "+ coarse gyro: model held to the reading's interval"
-DEFAULT = "+ gyro gain learned over the unit's earlier drives (the runtime's default)"
+GAIN = "+ gyro gain learned over the unit's earlier drives"
+DEFAULT = "+ the gyro's offset from the other cues while driving (the runtime's default)"
 OSD_GAIN = "OSD, gyro gain from the unit's earlier drives"
 
 
 NO_COARSE = ("coarse_yaw_resolution_radps", float("inf"))  # the coarse-gyro inflation off
 NO_HOLD = ("coarse_model_clamp_sigma", None)  # the coarse-gyro hold off
 NO_GAIN = ("yaw_gain_calibration", False)  # the learned gyro gain off
+NO_CUE = ("cue_offset", False)  # the gyro's offset not told from a_y / v, the wheels and the steering (cue_offset.py)
 NO_SLIDE = ("slide_accel_mps2", None)  # the slide monitor off (runtime/slide.py); every other row has it
 NO_SLIDE_ROW = "the default without the slide monitor"
 NO_LOW_MU = ("low_mu_model_var_scale", 1.0)  # the model's variance not inflated on a low-mu road; every other row is
@@ -115,7 +120,7 @@ BOUNDS = {"bound: OSD, the drive's gyro gain known": (OSD, 0.0),
           "bound: the default, the drive's gyro gain known": (HELD, 0.0),
           "bound: the default, the gyro gain known to 0.3 %": (HELD, GAIN_RESIDUAL)}
 PREVIOUS = (("model_offset_share", 1.0), ("cal_model_bias_tau_s", 5.0),
-            ("cal_model_bias_std_radps", 0.2 * DEG), ("model_omega_var_inflation", None), NO_COARSE, NO_GAIN)
+            ("cal_model_bias_std_radps", 0.2 * DEG), ("model_omega_var_inflation", None), NO_COARSE, NO_GAIN, NO_CUE)
 
 
 def variants(model: str) -> dict[str, ModelSpec]:
@@ -131,9 +136,10 @@ def variants(model: str) -> dict[str, ModelSpec]:
             "+ slow error 0.3 °/s, 60 s": replace(cal, filter=tuple({**prev, "model_offset_share": 0.0,
                                                                     "cal_model_bias_tau_s": 60.0,
                                                                     "cal_model_bias_std_radps": 0.3 * DEG}.items())),
-            "+ fast part inflated 5e4": replace(cal, filter=(NO_COARSE, NO_GAIN)),
-            "+ coarse gyro: metadata inflation": replace(cal, filter=(NO_HOLD, NO_GAIN)),
-            HELD: replace(cal, filter=(NO_GAIN,)),
+            "+ fast part inflated 5e4": replace(cal, filter=(NO_COARSE, NO_GAIN, NO_CUE)),
+            "+ coarse gyro: metadata inflation": replace(cal, filter=(NO_HOLD, NO_GAIN, NO_CUE)),
+            HELD: replace(cal, filter=(NO_GAIN, NO_CUE)),
+            GAIN: replace(cal, filter=(NO_CUE,)),
             DEFAULT: cal,
             NO_SLIDE_ROW: replace(cal, filter=(NO_SLIDE,)),
             NO_LOW_MU_ROW: replace(cal, filter=(NO_LOW_MU,)),
@@ -259,7 +265,7 @@ def summarise(results: dict[str, list], osd: list, extra: tuple[str, ...] = ()) 
                      "ratio_to_osd": s["rmse_mean_m"] / ref, "coverage_pct": cov,
                      "paired_vs_osd": None if name == OSD else paired_comparison(osd, res),
                      "per_car": per_car(res, osd)}
-        if OSD_GAIN in results and name != OSD_GAIN and name in (DEFAULT, HELD):  # against OSD with the same gain
+        if OSD_GAIN in results and name != OSD_GAIN and name in (DEFAULT, GAIN, HELD):  # against OSD, same gain
             out[name]["paired_vs_osd_gain"] = paired_comparison(results[OSD_GAIN], res)
         if name in extra and DEFAULT in results:
             out[name]["paired_vs_default"] = paired_comparison(results[DEFAULT], res)
