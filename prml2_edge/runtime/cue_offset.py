@@ -56,7 +56,8 @@ class CueOffsetConfig:
     # the cues' own offsets, one sigma: a_y [m/s^2], rear radius difference over the track [rad/m], steering [rad/m]
     prior_std: tuple[float, float, float] = (0.3, 0.015 / NOMINAL_TRACK_M,
                                              4.0 * schema.DEG_TO_RAD / (15.0 * NOMINAL_WHEELBASE_M))
-    # random walk of every state per second (the gyro's offset drifts with temperature, the tyres warm up)
+    # random walks: each state's variance grows by this per second (b: the filter's offset drift, 0.03 deg/s in
+    # 10 min; c: the accelerometer's with temperature; k, d: tyres warming, the column's play)
     psd: tuple[float, float, float, float] = (2.2e-11, 1e-8, 1e-12, 1e-12)
     min_gain: float = 0.5  # an export needs this much information on b, in units of its prior's
 
