@@ -146,10 +146,11 @@ class CueOffset:
         return self._nis_sum / self.blocks if self.blocks else np.full(3, np.nan)
 
     def summary(self) -> dict:
-        """For the run's summary: the blocks used, the offset the cues tell with its sigma [deg/s] and the NIS."""
+        """For the run's summary: the blocks used, the offset the cues tell with its sigma [deg/s] and the NIS (None
+        before the first block: the summary is written as strict JSON, which has no NaN)."""
         b, std = self.offset
         return {"blocks": self.blocks, "yaw_rate_offset_dps": math.degrees(b), "yaw_rate_offset_std_dps":
-                math.degrees(std), "nis": [round(float(x), 3) for x in self.nis]}
+                math.degrees(std), "nis": [round(float(x), 3) for x in self.nis] if self.blocks else None}
 
     def export(self) -> tuple[float, float] | None:
         """What was learned of ``b`` since the last export as one measurement ``(value, variance)`` [rad/s,

@@ -95,7 +95,7 @@ def test_the_ekf_takes_the_offset_as_a_measurement_of_its_state() -> None:
 
 def test_the_summary_says_what_the_cues_told() -> None:
     est = CueOffset(math.radians(0.5), RATIO)
-    assert est.summary()["blocks"] == 0 and all(math.isnan(x) for x in est.summary()["nis"])
+    assert est.summary()["blocks"] == 0 and est.summary()["nis"] is None
     feed(est, rows(60 * 50, math.radians(0.4), 0.0, 0.0, 0.0))
     s = est.summary()
     assert s["blocks"] == 30 and s["yaw_rate_offset_dps"] == pytest.approx(0.4, abs=0.1)
