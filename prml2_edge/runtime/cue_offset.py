@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from prml2_edge import schema
+from prml2_edge.runtime.axle_speed import rear_speed
 
 _SIG = schema.SIGNAL_BY_NAME
 _YAW, _AY, _STEER = (_SIG[n].index for n in ("yaw_rate_radps", "lat_accel_mps2", "steering_wheel_angle_rad"))
@@ -120,8 +121,8 @@ class CueOffset:
         cfg = self.config
         if not all(valid[i] for i in _NEEDED):
             return None
-        v = (float(values[_RL]) + float(values[_RR])) / 2
-        if not (v >= cfg.min_speed_mps and abs(float(values[_AY])) <= cfg.max_lat_accel_mps2):
+        v = rear_speed(values, valid)
+        if not (v is not None and v >= cfg.min_speed_mps and abs(float(values[_AY])) <= cfg.max_lat_accel_mps2):
             return None
         return v
 
