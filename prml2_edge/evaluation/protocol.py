@@ -102,6 +102,8 @@ class WindowTask:
     vehicle: str = ""
     # the cue axle's wheel scale the same history's GNSS baselines taught the file: (scale, variance); None: none
     wheel_scale: tuple[float, float] | None = None
+    # the cues' own offsets the same history taught the cue estimator: (values (3,), cov (3, 3)); None: none
+    cue_offsets: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def key(self) -> str:
@@ -172,9 +174,10 @@ def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: 
     the segment (onboard signals a car would have had; their ground truth only makes the fixes).
     ``history_min`` > 0: each simulated drive's car also has that many minutes of earlier drives, whose GNSS
     heading taught its calibration file the gyro's gain (:func:`~prml2_edge.evaluation.unit_history.gain_evidence`)
-    and the wheel scale (:func:`~prml2_edge.evaluation.unit_history.wheel_scale_evidence`).
+    and the wheel scale (:func:`~prml2_edge.evaluation.unit_history.wheel_scale_evidence`), and the cues' own
+    offsets (:func:`~prml2_edge.evaluation.unit_history.cue_evidence`).
     """
-    from prml2_edge.evaluation.unit_history import gain_evidence, wheel_scale_evidence
+    from prml2_edge.evaluation.unit_history import cue_evidence, gain_evidence, wheel_scale_evidence
 
     steps = int(round(window_s / schema.DT_S))
     pre = int(round(preroll_s / schema.DT_S))
@@ -186,6 +189,7 @@ def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: 
         mu = float(drive.meta.get("mu", 1.0))
         evidence = gain_evidence(drive, history_min) if history_min > 0.0 else None
         scale = wheel_scale_evidence(drive, history_min) if history_min > 0.0 else None
+        cues = cue_evidence(drive, history_min) if history_min > 0.0 else None
         starts = list(range(max(a, hist + pre), b - steps + 1, steps))
         if max_windows is not None:
             starts = starts[:max_windows]
@@ -198,7 +202,7 @@ def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: 
                                     drive.onboard[start - pre - hist : start + steps],
                                     drive.t_s[sl], drive.z_gt[sl], drive.pose_gt[sl], mu, bias, pre,
                                     drive.pose_gt[ps] if pre else None, drive.z_gt[ps] if pre else None,
-                                    evidence, str(drive.meta.get("vehicle", "")), scale))
+                                    evidence, str(drive.meta.get("vehicle", "")), scale, cues))
     return tasks
 
 
@@ -344,6 +348,8 @@ def localizer_for(spec: ModelSpec, task: WindowTask, stride: int = 1, model=None
         restore_standstill_calibration(loc, task.bias, task.wheel_scale if spec.wheel_scale_history else None)
         if task.yaw_gain is not None:
             loc.filter.yaw_gain.restore(*task.yaw_gain)
+        if task.cue_offsets is not None:
+            loc.restore_cue_offsets(*task.cue_offsets)
     if not spec.guard:
         loc.a_max_mps2 = NO_GUARD_A_MAX_MPS2  # ablation: no friction-circle bound (speed/yaw-rate bounds stay)
     return loc, model

@@ -17,6 +17,11 @@ from GNSS distance in the same file. :func:`wheel_scale_evidence` runs the runti
 distance of the cue axle against the distance between two fixes over 5 s baselines above 5 m/s, the scale a random
 walk between them) and hands back what the file would hold. Before, every window began from the scale's 1 % prior,
 which on the simulator's cars (0.3 % spread) let 30 s of noisy baselines move the scale further than the truth.
+
+The history drives also keep the drive's accelerometer and steering offsets (the unit's mounting and the steering's
+alignment), each with a per-drive variation (``CUE_VARIATION``: temperature, the column's play). The runtime's cue
+estimator (:mod:`prml2_edge.runtime.cue_offset`) runs over them, each drive starting the gyro's offset from its
+prior, and :func:`cue_evidence` hands back the cues' own offsets the file would hold.
 """
 
 from __future__ import annotations
@@ -38,6 +43,8 @@ from prml2_edge.runtime.yaw_gain import YawGainEstimator
 HISTORY_MINUTES = 20.0
 HISTORY_DRIVES = 4
 GAIN_VARIATION = 0.002  # per-drive spread of a sensor's gain around its own (temperature), one sigma
+# per-drive spread of the accelerometer's offset [m/s^2] and the steering's [rad] around the car's, one sigma
+CUE_VARIATION = (0.03, 0.1 * schema.DEG_TO_RAD)
 _CACHE: dict[tuple, dict] = {}
 
 
@@ -55,6 +62,15 @@ def wheel_scale_evidence(drive, minutes: float = HISTORY_MINUTES, drives: int = 
     file's, before its restore floor), or None (not a simulated drive of the fleet, or no history asked for)."""
     hist = _history(drive, minutes, drives, variation)
     return None if hist is None else hist["scale"]
+
+
+def cue_evidence(drive, minutes: float = HISTORY_MINUTES, drives: int = HISTORY_DRIVES,
+                 variation: float = GAIN_VARIATION) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(values (3,), cov (3, 3))`` of the cues' own offsets the runtime's cue estimator learned over the history
+    (:meth:`~prml2_edge.runtime.cue_offset.CueOffset.nuisance`, before the restore floor), or None (not a simulated
+    drive of the fleet, or no history asked for)."""
+    hist = _history(drive, minutes, drives, variation)
+    return None if hist is None else hist["cues"]
 
 
 def _history(drive, minutes: float, drives: int, variation: float) -> dict | None:
@@ -90,16 +106,50 @@ def _simulate_history(drive, gain: float, minutes: float, drives: int, variation
     tyres = (meta.get("sensor_errors") or {}).get("wheel_radius_error")
     rng = np.random.default_rng([zlib.crc32(drive.name.encode()), 0x6741494E])  # "gAIN"
     est = YawGainEstimator(math.radians(GNSS_HEADING_STD_DEG))
-    scale = WheelScaleHistory(**CARS[str(meta["vehicle"])].filter_settings())  # (_history: a car of the fleet)
+    settings = CARS[str(meta["vehicle"])].filter_settings()  # (_history: a car of the fleet)
+    scale = WheelScaleHistory(**settings)
+    cues = _cue_estimator(settings["steering_ratio"])
+    cue_rng = np.random.default_rng([zlib.crc32(drive.name.encode()), 0x43554553])  # "CUES": the gain's draws stay
     for j in range(drives):
         g = gain + float(rng.normal(0.0, variation))
-        errors = {"yaw_scale_error": g} | ({"wheel_radius_error": tuple(tyres)} if tyres is not None else {})
+        errors = {"yaw_scale_error": g} | ({"wheel_radius_error": tuple(tyres)} if tyres is not None else {}) \
+            | _car_cue_errors(meta, cue_rng)
         hist = simulate_drive(minutes / drives, 1.0, int(rng.integers(1 << 31)), "mixed", f"{drive.name}_history{j}",
                               sensor_errors=errors, vehicle=str(meta["vehicle"]))
         if not coarse:
             feed(est, hist, rng)
         scale.feed(hist, rng)
-    return {"gain": None if coarse else (est.info, est.info_c), "scale": (scale.k, scale.var)}
+        if j:
+            cues.new_drive()
+        feed_cues(cues, hist)
+    return {"gain": None if coarse else (est.info, est.info_c), "scale": (scale.k, scale.var),
+            "cues": cues.nuisance()}
+
+
+def _cue_estimator(steering_ratio: float):
+    from prml2_edge.runtime.cue_offset import CueOffset
+    from prml2_edge.runtime.localizer import LocalizerConfig
+
+    return CueOffset(LocalizerConfig().cal_yaw_offset_prior_std_radps, steering_ratio)
+
+
+def _car_cue_errors(meta: dict, rng: np.random.Generator) -> dict:
+    """The drive's accelerometer and steering offsets with this history drive's variation (``CUE_VARIATION``); {}
+    for a drive whose metadata does not have them."""
+    errors = meta.get("sensor_errors") or {}
+    out = {}
+    for name, spread in zip(("lat_offset_mps2", "steer_offset_rad"), CUE_VARIATION, strict=True):
+        if errors.get(name) is not None:
+            out[name] = float(errors[name]) + float(rng.normal(0.0, spread))
+    return out
+
+
+def feed_cues(cues, drive) -> None:
+    """Run the runtime's cue estimator over ``drive``'s CAN signals, every row (a NaN is a missing signal)."""
+    onboard = drive.onboard
+    finite = np.isfinite(onboard)
+    for values, valid in zip(onboard, finite, strict=True):
+        cues.row(values, valid)
 
 
 class WheelScaleHistory:

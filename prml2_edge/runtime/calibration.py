@@ -14,6 +14,10 @@ An optional ``yaw_gain`` section holds the evidence on the CAN yaw rate's gain g
 (:mod:`prml2_edge.runtime.yaw_gain`: its information and information-weighted sum, which the next drive adds to).
 A file without it (written before the gain was learned) loads as before; a malformed section is refused with one
 warning line and the gain starts from its prior, the rest of the file still restored.
+
+An optional ``cue_offsets`` section holds the cues' own offsets (:mod:`prml2_edge.runtime.cue_offset`: the
+accelerometer's, the rear wheels' radius difference, the steering's) with their covariance, which the cue estimator
+starts the next drive from. The same rules: absent loads as before, malformed is refused with one warning line.
 """
 
 from __future__ import annotations
@@ -57,6 +61,7 @@ class CalibrationFile:
         self.write_error: str | None = None  # the last failed save (a refused file on load is not one)
         self.restored = False
         self.yaw_gain: tuple[float, float] | None = None  # the loaded gain evidence (info, info_c), if any
+        self.cue_offsets: tuple[np.ndarray, np.ndarray] | None = None  # the loaded cue offsets (values, cov), if any
         self._last_save_t: float | None = None
 
     def load(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -93,6 +98,7 @@ class CalibrationFile:
         cov = 0.5 * (cov + cov.T) + floor
         self.restored = True
         self.yaw_gain = self._load_gain(data.get("yaw_gain"))
+        self.cue_offsets = self._load_cues(data.get("cue_offsets"))
         return cal, cov
 
     def _load_gain(self, section) -> tuple[float, float] | None:
@@ -109,6 +115,27 @@ class CalibrationFile:
                         self.path, exc)
             return None
         return info, info_c
+
+    def _load_cues(self, section) -> tuple[np.ndarray, np.ndarray] | None:
+        """The ``cue_offsets`` section's ``(values (3,), cov (3, 3))``; None when absent, or refused with one warning
+        line."""
+        from prml2_edge.runtime.cue_offset import NUISANCE_NAMES
+
+        if section is None:
+            return None
+        try:
+            if list(section["names"]) != list(NUISANCE_NAMES):
+                raise ValueError(f"names {section['names']} differ from {list(NUISANCE_NAMES)}")
+            values = np.asarray(section["values"], dtype=np.float64).reshape(len(NUISANCE_NAMES))
+            cov = np.asarray(section["cov"], dtype=np.float64).reshape(len(NUISANCE_NAMES), len(NUISANCE_NAMES))
+            if not (np.all(np.isfinite(values)) and np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0.0)):
+                raise ValueError("non-finite values or a covariance that is not positive")
+        except (ValueError, KeyError, TypeError) as exc:
+            self.last_error = f"cue_offsets section refused ({exc})"
+            log.warning("calibration file %s: cue_offsets section refused (%s): the cues' offsets start from their "
+                        "priors", self.path, exc)
+            return None
+        return values, cov
 
     def check_writable(self) -> None:
         """Refuse at start-up, with one line, a place the calibration can never be saved to."""
@@ -134,9 +161,11 @@ class CalibrationFile:
             return False
         return t_s - self._last_save_t >= self.save_interval_s
 
-    def save(self, cal: np.ndarray, cov: np.ndarray, t_s: float | None = None, yaw_gain: dict | None = None) -> bool:
+    def save(self, cal: np.ndarray, cov: np.ndarray, t_s: float | None = None, yaw_gain: dict | None = None,
+             cue_offsets: dict | None = None) -> bool:
         """Write atomically; False (and ``last_error``) when the folder is not writable, never raises.
-        ``yaw_gain``: the gain estimator's :meth:`~prml2_edge.runtime.yaw_gain.YawGainEstimator.state`."""
+        ``yaw_gain``: the gain estimator's :meth:`~prml2_edge.runtime.yaw_gain.YawGainEstimator.state`;
+        ``cue_offsets``: :meth:`~prml2_edge.runtime.localizer.StreamingLocalizer.cue_offset_state`."""
         doc = {"format": FORMAT, "version": VERSION, "vehicle": self.identity, "saved_unix_s": time.time(),
                "drive_t_s": t_s, "state_names": list(CalState.NAMES),
                "cal": [float(v) for v in cal], "cov": [[float(v) for v in row] for row in cov],
@@ -145,6 +174,8 @@ class CalibrationFile:
         if yaw_gain is not None:
             doc["yaw_gain"] = {k: float(v) for k, v in yaw_gain.items()}
             doc["readable"]["yaw_rate_gain_pct"] = 100.0 * float(yaw_gain["gain"])
+        if cue_offsets is not None:
+            doc["cue_offsets"] = cue_offsets
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", dir=self.path.parent)

@@ -22,6 +22,11 @@ Track and wheelbase need not be known: off the straights their error scales the 
 the offsets' slopes ``k`` and ``d`` [rad/m] are learned as they are. :meth:`CueOffset.export` hands what it has
 learned of ``b`` since the last export to the pose filter as one measurement (the information it gained, so that
 nothing is counted twice), where it meets the CAN yaw-rate offset state.
+
+The cues' own offsets belong to the car (the accelerometer's mounting, the tyres, the steering's alignment), not to
+the drive, so the calibration file keeps them (:meth:`CueOffset.nuisance`) and the next drive starts from them
+(:meth:`CueOffset.restore`): in a minute of driving at one speed ``b`` does not separate from them, and a cold start
+has only their priors. The gyro's offset starts each drive from its prior; it moves between drives.
 """
 
 from __future__ import annotations
@@ -40,6 +45,10 @@ _RL, _RR = _SIG["wheel_speed_rl_mps"].index, _SIG["wheel_speed_rr_mps"].index
 _NEEDED = (_YAW, _AY, _STEER, _RL, _RR)
 NOMINAL_TRACK_M = 1.55
 NOMINAL_WHEELBASE_M = 2.7
+NUISANCE_NAMES = ("lat_accel_offset_mps2", "rear_radius_diff_radpm", "steering_offset_radpm")
+# one-sigma floor of restored cue offsets: they move between drives (the accelerometer with temperature, tyre
+# pressure, the column's play), so a restored estimate is a strong prior, not a certainty
+RESTORE_STD_FLOOR = (0.03, 0.001 / NOMINAL_TRACK_M, 0.1 * schema.DEG_TO_RAD / (15.0 * NOMINAL_WHEELBASE_M))
 
 
 @dataclass(frozen=True)
@@ -76,11 +85,13 @@ class CueOffset:
         self._block_rows = max(1, int(round(self.config.block_s / self.dt_s)))
         self._prior = np.diag(np.square((float(b_prior_std_radps),) + tuple(self.config.prior_std)))
         self._R = np.diag(np.square(self.config.block_std_radps))
+        self._start = (np.zeros(self.DIM), self._prior.copy())  # where :meth:`reset` begins (:meth:`restore`)
+        self.restored = False
         self.reset()
 
     def reset(self) -> None:
-        self.theta = np.zeros(self.DIM)
-        self.P = self._prior.copy()
+        self.theta = self._start[0].copy()
+        self.P = self._start[1].copy()
         self._sums = np.zeros(5)  # gyro − a_y/v, gyro − rear, gyro − steering, 1/v, v
         self._n = 0
         self.blocks = 0
@@ -90,6 +101,31 @@ class CueOffset:
     def restart_export(self) -> None:
         """The next :meth:`export` hands over everything learned (to a filter that starts again from its prior)."""
         self._exported = (0.0, float(self._prior[0, 0]))
+
+    def nuisance(self) -> tuple[np.ndarray, np.ndarray]:
+        """The cues' own offsets ``(c, k, d)`` (:data:`NUISANCE_NAMES`) and their covariance (3, 3): what the
+        calibration file keeps for the next drive."""
+        return self.theta[1:].copy(), self.P[1:, 1:].copy()
+
+    def restore(self, values, cov) -> None:
+        """Start from the cues' offsets an earlier drive learned (:meth:`nuisance`), their covariance floored at
+        :data:`RESTORE_STD_FLOOR`; ``b`` starts from its prior. Raises ValueError on a wrong shape, a non-finite
+        value or a covariance that is not positive."""
+        values = np.asarray(values, dtype=np.float64)
+        cov = np.asarray(cov, dtype=np.float64)
+        if values.shape != (self.DIM - 1,) or cov.shape != (self.DIM - 1, self.DIM - 1):
+            raise ValueError(f"want {self.DIM - 1} values and a {self.DIM - 1}x{self.DIM - 1} covariance")
+        if not (np.all(np.isfinite(values)) and np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0.0)):
+            raise ValueError("non-finite values or a covariance that is not positive")
+        P = self._prior.copy()
+        P[1:, 1:] = 0.5 * (cov + cov.T) + np.diag(np.square(RESTORE_STD_FLOOR))
+        self._start = (np.concatenate([[0.0], values]), P)
+        self.restored = True
+        self.reset()
+
+    def new_drive(self) -> None:
+        """Between two drives of one car: what was learned of the cues' offsets stays, ``b`` back to its prior."""
+        self.restore(*self.nuisance())
 
     @property
     def offset(self) -> tuple[float, float]:
@@ -150,8 +186,9 @@ class CueOffset:
         """For the run's summary: the blocks used, the offset the cues tell with its sigma [deg/s] and the NIS (None
         before the first block: the summary is written as strict JSON, which has no NaN)."""
         b, std = self.offset
-        return {"blocks": self.blocks, "yaw_rate_offset_dps": math.degrees(b), "yaw_rate_offset_std_dps":
-                math.degrees(std), "nis": [round(float(x), 3) for x in self.nis] if self.blocks else None}
+        return {"blocks": self.blocks, "restored": self.restored, "yaw_rate_offset_dps": math.degrees(b),
+                "yaw_rate_offset_std_dps": math.degrees(std),
+                "nis": [round(float(x), 3) for x in self.nis] if self.blocks else None}
 
     def export(self) -> tuple[float, float] | None:
         """What was learned of ``b`` since the last export as one measurement ``(value, variance)`` [rad/s,

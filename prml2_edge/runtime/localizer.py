@@ -22,6 +22,7 @@ import numpy as np
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import StepStatus, default_process_noise, wrap_angle
 from prml2_edge.runtime.async_estimator import AsyncEstimator
+from prml2_edge.runtime.cue_offset import NUISANCE_NAMES
 from prml2_edge.runtime.estimator import Estimate, Estimator, Model
 from prml2_edge.runtime.filter import PoseFilter
 from prml2_edge.runtime.initial_pose import InitialPose
@@ -225,6 +226,23 @@ class StreamingLocalizer:
     def yaw_gain_state(self) -> dict | None:
         """The gain evidence to save (None with the gain calibration off)."""
         return self.filter.yaw_gain.state() if self.filter.gain_learned else None
+
+    def restore_cue_offsets(self, values, cov) -> bool:
+        """Start the cue estimator from the cues' own offsets saved by earlier drives; False (nothing done) when the
+        estimator is off or ``cue_offset_restore`` is. ValueError on values of the wrong shape or not finite."""
+        cues = self.filter.cue_offset
+        if cues is None or not self.config.cue_offset_restore:
+            return False
+        cues.restore(values, cov)
+        return True
+
+    def cue_offset_state(self) -> dict | None:
+        """The cues' own offsets to save (None with the estimator off)."""
+        cues = self.filter.cue_offset
+        if cues is None:
+            return None
+        values, cov = cues.nuisance()
+        return {"names": list(NUISANCE_NAMES), "values": values.tolist(), "cov": cov.tolist()}
 
     def step(self, values: np.ndarray, valid: np.ndarray, t_s: float, gnss: GnssFix | None = None,
              discontinuity: bool = False, bus_silent: bool = False, substituted: np.ndarray | None = None,

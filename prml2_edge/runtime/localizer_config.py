@@ -139,6 +139,10 @@ class LocalizerConfig:
     # Chosen on validation (issue 26, docs/evaluation.md): a fine gyro's +0.4 deg/s learned to 0.07 deg/s rms in
     # 5 min (0.34 without), and no validation split worse beyond its interval.
     cue_offset: bool = True
+    # ... starting from the cues' own offsets the calibration file kept from earlier drives (the car's, not the
+    # drive's); off: every drive starts them from their priors (an ablation: a cold start's minute cannot separate
+    # the gyro's offset from them).
+    cue_offset_restore: bool = True
 
     def __post_init__(self) -> None:
         if self.stride < 1:

@@ -201,11 +201,14 @@ class Pipeline:
             self.localizer.restore_calibration(*restored)
         if self.calibration_file.yaw_gain is not None:
             self.localizer.restore_yaw_gain(*self.calibration_file.yaw_gain)
+        if self.calibration_file.cue_offsets is not None:
+            self.localizer.restore_cue_offsets(*self.calibration_file.cue_offsets)
 
     def _save_calibration(self, t_s: float | None) -> None:
         cal = self.localizer.calibration()
         if self.calibration_file is not None and cal is not None:
-            self.calibration_file.save(*cal, t_s=t_s, yaw_gain=self.localizer.yaw_gain_state())
+            self.calibration_file.save(*cal, t_s=t_s, yaw_gain=self.localizer.yaw_gain_state(),
+                                       cue_offsets=self.localizer.cue_offset_state())
 
     @property
     def model(self):

@@ -9,20 +9,22 @@ import pytest
 
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import Ekf
-from prml2_edge.runtime.cue_offset import NOMINAL_TRACK_M, NOMINAL_WHEELBASE_M, CueOffset
+from prml2_edge.runtime.cue_offset import NOMINAL_TRACK_M, NOMINAL_WHEELBASE_M, RESTORE_STD_FLOOR, CueOffset
 from prml2_edge.schema import EkfState
 
 _SIG = schema.SIGNAL_BY_NAME
 RATIO = 15.0
 
 
-def rows(n: int, b: float, c: float, k: float, d: float, seed: int = 0, a_y: float = 0.0, speed: float = 15.0):
-    """``n`` 50 Hz rows driving straight at a speed swinging about ``speed`` (by 8 m/s or half of it) over a
-    minute, the gyro offset ``b`` [rad/s], a_y offset ``c`` [m/s^2] (plus ``a_y`` of true lateral acceleration), a
-    rear radius difference of ``k`` [rad/m] and a steering offset of ``d`` [rad/m]; noise on the gyro and a_y."""
+def rows(n: int, b: float, c: float, k: float, d: float, seed: int = 0, a_y: float = 0.0, speed: float = 15.0,
+         swing: float | None = None):
+    """``n`` 50 Hz rows driving straight at a speed swinging about ``speed`` (by ``swing``, default 8 m/s or half
+    the speed) over a minute, the gyro offset ``b`` [rad/s], a_y offset ``c`` [m/s^2] (plus ``a_y`` of true
+    lateral acceleration), a rear radius difference of ``k`` [rad/m] and a steering offset of ``d`` [rad/m]; noise
+    on the gyro and a_y."""
     rng = np.random.default_rng(seed)
     t = np.arange(n) * schema.DT_S
-    v = speed + min(8.0, speed / 2) * np.sin(2 * math.pi * t / 60.0)
+    v = speed + (min(8.0, speed / 2) if swing is None else swing) * np.sin(2 * math.pi * t / 60.0)
     out = np.zeros((n, schema.NUM_SIGNALS))
     out[:, _SIG["yaw_rate_radps"].index] = b + rng.normal(0.0, math.radians(0.1), n)
     out[:, _SIG["lat_accel_mps2"].index] = a_y + c + rng.normal(0.0, 0.05, n)
@@ -52,6 +54,36 @@ def test_the_offset_is_told_from_the_cues_own_errors_over_minutes_of_driving() -
     assert abs(got - b) < math.radians(0.05)
     assert abs(got - b) < 3 * std
     assert est.theta[1:] == pytest.approx([c, k, d], rel=0.2)
+
+
+def test_a_restored_car_tells_the_offset_within_a_minute_at_one_speed() -> None:
+    """At one steady speed b does not separate from the cues' offsets: a cold start is left near its prior's 0.
+    Started from the offsets an earlier drive of the car learned, the same minute tells b."""
+    b, c, k, d = math.radians(0.4), 0.1, 0.002, 0.0005
+    earlier = CueOffset(math.radians(0.5), RATIO)
+    feed(earlier, rows(10 * 60 * 50, math.radians(-0.2), c, k, d, seed=3))  # another day, another gyro offset
+    steady = rows(60 * 50, b, c, k, d, seed=4, speed=14.0, swing=0.5)
+    cold, warm = CueOffset(math.radians(0.5), RATIO), CueOffset(math.radians(0.5), RATIO)
+    warm.restore(*earlier.nuisance())
+    feed(cold, steady)
+    feed(warm, steady)
+    assert abs(warm.offset[0] - b) < math.radians(0.05) and warm.offset[1] < math.radians(0.1)
+    assert abs(cold.offset[0] - b) > math.radians(0.15)  # the cold one cannot tell b from c, k, d here
+    assert warm.summary()["restored"] and not cold.summary()["restored"]
+
+
+def test_restore_floors_the_covariance_starts_b_from_its_prior_and_refuses_bad_values() -> None:
+    est = CueOffset(math.radians(0.5), RATIO)
+    feed(est, rows(5 * 60 * 50, math.radians(0.3), 0.2, 0.003, 0.001))
+    values, cov = est.nuisance()
+    est.new_drive()  # what the next drive of the car starts from
+    assert est.offset == (0.0, pytest.approx(math.radians(0.5)))
+    np.testing.assert_allclose(est.theta[1:], values)
+    np.testing.assert_allclose(np.diag(est.P)[1:], np.diag(cov) + np.square(RESTORE_STD_FLOOR))
+    assert np.all(est.P[0, 1:] == 0.0) and est.blocks == 0
+    for bad in ((values[:2], cov), (values, cov[:2, :2]), ([np.nan, 0, 0], cov), (values, np.zeros((3, 3)))):
+        with pytest.raises(ValueError):
+            CueOffset(math.radians(0.5), RATIO).restore(*bad)
 
 
 def test_turning_slow_or_missing_rows_teach_nothing() -> None:
@@ -132,3 +164,22 @@ def test_the_filter_learns_a_fine_gyros_offset_while_driving_only_from_the_cues(
     else:
         assert abs(learned) < 0.15
         assert "cue_offset" not in loc.filter.summary()["calibration"]
+
+
+def test_a_cars_history_teaches_the_file_the_cues_own_offsets() -> None:
+    """The simulated history keeps the car's accelerometer and steering offsets (each drive a little off them) and
+    its tyres: the cue estimator run over it, each drive's gyro offset its own, finds the car's offsets."""
+    from prml2_edge.data.simulate import simulate_drive
+    from prml2_edge.data.simulate.fleet import get_car
+    from prml2_edge.evaluation.unit_history import cue_evidence
+
+    steer = math.radians(2.0)
+    drive = simulate_drive(0.5, 1.0, 5, "mixed", "cues_car", vehicle="compact_fwd",
+                           sensor_errors={"lat_offset_mps2": 0.2, "steer_offset_rad": steer,
+                                          "wheel_radius_error": (0.0, 0.0, -0.003, 0.003)})
+    values, cov = cue_evidence(drive, minutes=8.0, drives=2)
+    ratio = get_car("compact_fwd").params.steering_ratio
+    assert values[0] == pytest.approx(0.2, abs=0.06)
+    assert values[1] == pytest.approx(0.006 / NOMINAL_TRACK_M, rel=0.1)
+    assert values[2] == pytest.approx(steer / (ratio * NOMINAL_WHEELBASE_M), rel=0.1)
+    assert np.all(np.sqrt(np.diag(cov)) < [0.05, 0.0003, 0.0003])

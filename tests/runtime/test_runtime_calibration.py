@@ -62,3 +62,29 @@ def test_an_unwritable_place_is_reported_not_raised(tmp_path):
     (tmp_path / "a_file").write_text("")  # its "folder" is a file: mkdir fails, even for root
     f = CalibrationFile(tmp_path / "a_file" / "cal.json", "car")
     assert not f.save(CAL, COV) and "cannot write" in f.last_error and f.n_saves == 0
+
+
+def test_the_cue_offsets_section_round_trips_and_a_bad_one_is_refused_alone(tmp_path, caplog):
+    """The cues' own offsets go to the next drive; a file without the section (an older runtime's) loads as
+    before; a malformed one is refused with one warning line and the rest of the file still restores."""
+    from prml2_edge.runtime.cue_offset import NUISANCE_NAMES
+
+    section = {"names": list(NUISANCE_NAMES), "values": [0.1, 0.001, 0.0002], "cov": np.diag([1e-4, 1e-8, 1e-8])}
+    section["cov"] = section["cov"].tolist()
+    f = CalibrationFile(tmp_path / "cal.json", "car")
+    assert f.save(CAL, COV, cue_offsets=section)
+    g = CalibrationFile(tmp_path / "cal.json", "car")
+    assert g.load() is not None and g.last_error is None
+    np.testing.assert_allclose(g.cue_offsets[0], section["values"])
+    np.testing.assert_allclose(g.cue_offsets[1], section["cov"])
+    assert f.save(CAL, COV)
+    h = CalibrationFile(tmp_path / "cal.json", "car")
+    assert h.load() is not None and h.cue_offsets is None and h.last_error is None
+    for broken in ({"names": ["a", "b", "c"]}, {"values": [0.1, float("nan"), 0.0]}, {"cov": [[1.0]]}):
+        assert f.save(CAL, COV, cue_offsets=section | broken)
+        caplog.clear()
+        bad = CalibrationFile(tmp_path / "cal.json", "car")
+        with caplog.at_level(logging.WARNING):
+            assert bad.load() is not None and bad.cue_offsets is None
+        assert "cue_offsets section refused" in bad.last_error
+        assert len(caplog.records) == 1 and "start from their priors" in caplog.text

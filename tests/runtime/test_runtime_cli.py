@@ -248,10 +248,12 @@ def test_replay_saves_the_calibration_and_the_next_run_restores_it(files, tmp_pa
     assert doc["vehicle"].startswith("prml2_onboard") and len(doc["cal"]) == 3
     assert "yaw_gain" in doc  # the gyro gain's evidence is kept for the next drive
     doc["yaw_gain"].update(info=1e6, info_c=1e6 / 1.03)  # as if earlier drives had taught a 3 % gain
+    assert doc["cue_offsets"]["names"][0] == "lat_accel_offset_mps2"  # so are the cues' own offsets
     cal.write_text(json.dumps(doc))
     assert main(args + [str(tmp_path / "s2.json")]) == 0
     second = json.loads((tmp_path / "s2.json").read_text())["calibration"]
     assert second["restored"] and second["yaw_rate_gain_pct"] == pytest.approx(3.0, abs=0.1)
+    assert second["cue_offset"]["restored"]
     # a corrupt file: one warning line, the defaults, and the run still does its job
     cal.write_text("{")
     with caplog.at_level(logging.WARNING):
