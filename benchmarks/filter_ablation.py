@@ -22,8 +22,11 @@ so each row differs from the next by one choice only, on the same windows. Varia
   (``prml2_edge.evaluation.unit_history``, ``runtime/yaw_gain.py``; the runtime's default before the cues). Every
   row above has the gain calibration off;
 * ``+ the gyro's offset from the other cues while driving``: a_y / v, the rear wheels and the steering, each with an
-  offset of its own, tell the CAN yaw rate's offset on straights (``runtime/cue_offset.py``; the runtime's
-  default). Every row above has it off.
+  offset of its own, tell the CAN yaw rate's offset on straights (``runtime/cue_offset.py``), every drive starting
+  the cues' own offsets from their priors. Every row above has it off;
+* ``+ the cues' own offsets kept from the unit's earlier drives``: the cue estimator starts from the offsets it
+  learned on the same 20 min of the car's earlier drives (``evaluation.unit_history.cue_evidence``; the runtime's
+  default).
 
 Every calibrated row also starts from the wheel scale the car's simulated earlier drives taught its calibration file
 (``evaluation.unit_history.wheel_scale_evidence``), except ``the default without the wheel scale from the unit's
@@ -90,7 +93,8 @@ OSD = "OSD-Baseline"
 DEG = np.pi / 180.0
 HELD = "+ coarse gyro: model held to the reading's interval"
 GAIN = "+ gyro gain learned over the unit's earlier drives"
-DEFAULT = "+ the gyro's offset from the other cues while driving (the runtime's default)"
+CUE = "+ the gyro's offset from the other cues while driving"
+DEFAULT = "+ the cues' own offsets kept from the unit's earlier drives (the runtime's default)"
 OSD_GAIN = "OSD, gyro gain from the unit's earlier drives"
 
 
@@ -98,6 +102,7 @@ NO_COARSE = ("coarse_yaw_resolution_radps", float("inf"))  # the coarse-gyro inf
 NO_HOLD = ("coarse_model_clamp_sigma", None)  # the coarse-gyro hold off
 NO_GAIN = ("yaw_gain_calibration", False)  # the learned gyro gain off
 NO_CUE = ("cue_offset", False)  # the gyro's offset not told from a_y / v, the wheels and the steering (cue_offset.py)
+NO_RESTORE = ("cue_offset_restore", False)  # every drive starts the cues' own offsets from their priors
 NO_SLIDE = ("slide_accel_mps2", None)  # the slide monitor off (runtime/slide.py); every other row has it
 NO_SLIDE_ROW = "the default without the slide monitor"
 NO_LOW_MU = ("low_mu_model_var_scale", 1.0)  # the model's variance not inflated on a low-mu road; every other row is
@@ -140,6 +145,7 @@ def variants(model: str) -> dict[str, ModelSpec]:
             "+ coarse gyro: metadata inflation": replace(cal, filter=(NO_HOLD, NO_GAIN, NO_CUE)),
             HELD: replace(cal, filter=(NO_GAIN, NO_CUE)),
             GAIN: replace(cal, filter=(NO_CUE,)),
+            CUE: replace(cal, filter=(NO_RESTORE,)),
             DEFAULT: cal,
             NO_SLIDE_ROW: replace(cal, filter=(NO_SLIDE,)),
             NO_LOW_MU_ROW: replace(cal, filter=(NO_LOW_MU,)),
@@ -265,9 +271,9 @@ def summarise(results: dict[str, list], osd: list, extra: tuple[str, ...] = ()) 
                      "ratio_to_osd": s["rmse_mean_m"] / ref, "coverage_pct": cov,
                      "paired_vs_osd": None if name == OSD else paired_comparison(osd, res),
                      "per_car": per_car(res, osd)}
-        if OSD_GAIN in results and name != OSD_GAIN and name in (DEFAULT, GAIN, HELD):  # against OSD, same gain
+        if OSD_GAIN in results and name != OSD_GAIN and name in (DEFAULT, CUE, GAIN, HELD):  # vs OSD, same gain
             out[name]["paired_vs_osd_gain"] = paired_comparison(results[OSD_GAIN], res)
-        if name in extra and DEFAULT in results:
+        if (name in extra or name == CUE) and DEFAULT in results:  # CUE: the step the default took last
             out[name]["paired_vs_default"] = paired_comparison(results[DEFAULT], res)
     return out
 
