@@ -119,17 +119,14 @@ class CalibrationFile:
     def _load_cues(self, section) -> tuple[np.ndarray, np.ndarray] | None:
         """The ``cue_offsets`` section's ``(values (3,), cov (3, 3))``; None when absent, or refused with one warning
         line."""
-        from prml2_edge.runtime.cue_offset import NUISANCE_NAMES
+        from prml2_edge.runtime.cue_offset import NUISANCE_NAMES, checked_nuisance
 
         if section is None:
             return None
         try:
             if list(section["names"]) != list(NUISANCE_NAMES):
                 raise ValueError(f"names {section['names']} differ from {list(NUISANCE_NAMES)}")
-            values = np.asarray(section["values"], dtype=np.float64).reshape(len(NUISANCE_NAMES))
-            cov = np.asarray(section["cov"], dtype=np.float64).reshape(len(NUISANCE_NAMES), len(NUISANCE_NAMES))
-            if not (np.all(np.isfinite(values)) and np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0.0)):
-                raise ValueError("non-finite values or a covariance that is not positive")
+            values, cov = checked_nuisance(section["values"], section["cov"])
         except (ValueError, KeyError, TypeError) as exc:
             self.last_error = f"cue_offsets section refused ({exc})"
             log.warning("calibration file %s: cue_offsets section refused (%s): the cues' offsets start from their "

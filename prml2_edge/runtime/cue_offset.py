@@ -51,6 +51,21 @@ NUISANCE_NAMES = ("lat_accel_offset_mps2", "rear_radius_diff_radpm", "steering_o
 RESTORE_STD_FLOOR = (0.03, 0.001 / NOMINAL_TRACK_M, 0.1 * schema.DEG_TO_RAD / (15.0 * NOMINAL_WHEELBASE_M))
 
 
+def checked_nuisance(values, cov) -> tuple[np.ndarray, np.ndarray]:
+    """The cues' own offsets ``(values (3,), cov (3, 3))`` as float arrays, the covariance made symmetric; ValueError
+    on a wrong shape, a non-finite value or a covariance that is not positive (semi-)definite."""
+    n = len(NUISANCE_NAMES)
+    values = np.asarray(values, dtype=np.float64)
+    cov = np.asarray(cov, dtype=np.float64)
+    if values.shape != (n,) or cov.shape != (n, n):
+        raise ValueError(f"want {n} values and a {n}x{n} covariance")
+    cov = 0.5 * (cov + cov.T)
+    if not (np.all(np.isfinite(values)) and np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0.0)
+            and np.linalg.eigvalsh(cov)[0] >= -1e-9 * float(np.max(np.diag(cov)))):
+        raise ValueError("non-finite values or a covariance that is not positive")
+    return values, cov
+
+
 @dataclass(frozen=True)
 class CueOffsetConfig:
     """The estimator's settings, SI units; chosen on the validation drives (docs/evaluation.md)."""
@@ -111,14 +126,9 @@ class CueOffset:
         """Start from the cues' offsets an earlier drive learned (:meth:`nuisance`), their covariance floored at
         :data:`RESTORE_STD_FLOOR`; ``b`` starts from its prior. Raises ValueError on a wrong shape, a non-finite
         value or a covariance that is not positive."""
-        values = np.asarray(values, dtype=np.float64)
-        cov = np.asarray(cov, dtype=np.float64)
-        if values.shape != (self.DIM - 1,) or cov.shape != (self.DIM - 1, self.DIM - 1):
-            raise ValueError(f"want {self.DIM - 1} values and a {self.DIM - 1}x{self.DIM - 1} covariance")
-        if not (np.all(np.isfinite(values)) and np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0.0)):
-            raise ValueError("non-finite values or a covariance that is not positive")
+        values, cov = checked_nuisance(values, cov)
         P = self._prior.copy()
-        P[1:, 1:] = 0.5 * (cov + cov.T) + np.diag(np.square(RESTORE_STD_FLOOR))
+        P[1:, 1:] = cov + np.diag(np.square(RESTORE_STD_FLOOR))
         self._start = (np.concatenate([[0.0], values]), P)
         self.restored = True
         self.reset()

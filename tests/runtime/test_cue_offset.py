@@ -81,7 +81,9 @@ def test_restore_floors_the_covariance_starts_b_from_its_prior_and_refuses_bad_v
     np.testing.assert_allclose(est.theta[1:], values)
     np.testing.assert_allclose(np.diag(est.P)[1:], np.diag(cov) + np.square(RESTORE_STD_FLOOR))
     assert np.all(est.P[0, 1:] == 0.0) and est.blocks == 0
-    for bad in ((values[:2], cov), (values, cov[:2, :2]), ([np.nan, 0, 0], cov), (values, np.zeros((3, 3)))):
+    indefinite = np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]]) * 1e-6
+    for bad in ((values[:2], cov), (values, cov[:2, :2]), ([np.nan, 0, 0], cov), (values, np.zeros((3, 3))),
+                (values, indefinite)):
         with pytest.raises(ValueError):
             CueOffset(math.radians(0.5), RATIO).restore(*bad)
 

@@ -80,7 +80,8 @@ def test_the_cue_offsets_section_round_trips_and_a_bad_one_is_refused_alone(tmp_
     assert f.save(CAL, COV)
     h = CalibrationFile(tmp_path / "cal.json", "car")
     assert h.load() is not None and h.cue_offsets is None and h.last_error is None
-    for broken in ({"names": ["a", "b", "c"]}, {"values": [0.1, float("nan"), 0.0]}, {"cov": [[1.0]]}):
+    for broken in ({"names": ["a", "b", "c"]}, {"values": [0.1, float("nan"), 0.0]}, {"cov": [[1.0]]},
+                   {"values": "many"}):
         assert f.save(CAL, COV, cue_offsets=section | broken)
         caplog.clear()
         bad = CalibrationFile(tmp_path / "cal.json", "car")
