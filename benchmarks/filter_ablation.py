@@ -283,15 +283,22 @@ def car_of(key: str) -> str:
     return key.split("/", 1)[1].rsplit("_", 2)[0]
 
 
+def by_car(res: list) -> dict[str, list]:
+    """Window results grouped by their car (:func:`car_of` their key), cars in order."""
+    out: dict[str, list] = {}
+    for r in res:
+        out.setdefault(car_of(r.task_key), []).append(r)
+    return dict(sorted(out.items()))
+
+
 def per_car(res: list, osd: list) -> dict:
     """RMSE [m] and its ratio to OSD's on the same car's windows."""
+    mine = by_car(res)
     out = {}
-    for car in sorted({car_of(r.task_key) for r in osd}):
-        mine = [r.rmse_m for r in res if car_of(r.task_key) == car]
-        ref = [r.rmse_m for r in osd if car_of(r.task_key) == car]
-        out[car] = {"rmse_mean_m": float(np.mean(mine)), "ratio_to_osd": float(np.mean(mine) / np.mean(ref)),
-                    "paired_vs_osd": paired_comparison([r for r in osd if car_of(r.task_key) == car],
-                                                       [r for r in res if car_of(r.task_key) == car])}
+    for car, ref in by_car(osd).items():
+        rmse = float(np.mean([r.rmse_m for r in mine[car]]))
+        out[car] = {"rmse_mean_m": rmse, "ratio_to_osd": rmse / float(np.mean([r.rmse_m for r in ref])),
+                    "paired_vs_osd": paired_comparison(ref, mine[car])}
     return out
 
 

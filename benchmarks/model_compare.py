@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from filter_ablation import DRY_VAL, OSD, PROTOCOLS, RESIMULATED, SNOW_VAL, car_of, resimulated
+from filter_ablation import DRY_VAL, OSD, PROTOCOLS, RESIMULATED, SNOW_VAL, by_car, resimulated
 
 from prml2_edge.bench.results import announce, finish
 from prml2_edge.data.datasets import load_dataset
@@ -42,9 +42,9 @@ OUT = HERE / "results" / "model_compare.json"
 def per_car(a: list, b: list) -> dict:
     """Per car: each model's mean RMSE [m] and B - A paired over that car's windows."""
     out = {}
-    for car in sorted({car_of(r.task_key) for r in a}):
-        ca = [r for r in a if car_of(r.task_key) == car]
-        cb = [r for r in b if car_of(r.task_key) == car]
+    b_cars = by_car(b)
+    for car, ca in by_car(a).items():
+        cb = b_cars[car]
         out[car] = {"a_rmse_m": float(np.mean([r.rmse_m for r in ca])),
                     "b_rmse_m": float(np.mean([r.rmse_m for r in cb])), "b_minus_a": paired_comparison(ca, cb)}
     return out
