@@ -85,6 +85,10 @@ class CueOffsetConfig:
     # 10 min; c: the accelerometer's with temperature; k, d: tyres warming, the column's play)
     psd: tuple[float, float, float, float] = (2.2e-11, 1e-8, 1e-12, 1e-12)
     min_gain: float = 0.5  # an export needs this much information on b, in units of its prior's
+    # a floor under what the cues can tell of b [rad/s], one sigma: their errors that do not average out (a van's
+    # steering geometry against the nominal, the history's offsets); the exports never add up to more information
+    # than 1 / floor^2. 0: none
+    systematic_std_radps: float = 0.0
 
 
 class CueOffset:
@@ -115,7 +119,7 @@ class CueOffset:
 
     def restart_export(self) -> None:
         """The next :meth:`export` hands over everything learned (to a filter that starts again from its prior)."""
-        self._exported = (0.0, float(self._prior[0, 0]))
+        self._exported = (0.0, float(self._prior[0, 0]) + self.config.systematic_std_radps ** 2)
 
     def nuisance(self) -> tuple[np.ndarray, np.ndarray]:
         """The cues' own offsets ``(c, k, d)`` (:data:`NUISANCE_NAMES`) and their covariance (3, 3): what the
@@ -204,7 +208,7 @@ class CueOffset:
         """What was learned of ``b`` since the last export as one measurement ``(value, variance)`` [rad/s,
         rad^2/s^2]: the marginal's information gain and the value that carries it; None while the gain is under
         ``min_gain`` of the prior's information."""
-        b, var = float(self.theta[0]), float(self.P[0, 0])
+        b, var = float(self.theta[0]), float(self.P[0, 0]) + self.config.systematic_std_radps ** 2
         b0, var0 = self._exported
         gain = 1.0 / var - 1.0 / var0
         if gain < self.config.min_gain / float(self._prior[0, 0]):

@@ -41,7 +41,7 @@ import numpy as np
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import CalibrationNoise, CalibrationStd, Ekf, StepStatus
 from prml2_edge.runtime.axle_speed import front_speed, rear_speed
-from prml2_edge.runtime.cue_offset import CueOffset
+from prml2_edge.runtime.cue_offset import CueOffset, CueOffsetConfig
 from prml2_edge.runtime.estimator import Estimate
 from prml2_edge.runtime.filter_gnss import GnssFusion
 from prml2_edge.runtime.gnss_check import FixNoise, GnssCheck, GnssCheckConfig
@@ -113,7 +113,8 @@ class PoseFilter(GnssFusion):
         if axle == "rear":
             self._axle_speed = functools.partial(front_speed, steering_ratio=float(config.steering_ratio))
         # the gyro's offset from the other cues (runtime/cue_offset.py): over drives' minutes, so kept across restarts
-        self.cue_offset = CueOffset(config.cal_yaw_offset_prior_std_radps, config.steering_ratio, dt_s=self.dt_s) \
+        floor = CueOffsetConfig(systematic_std_radps=float(getattr(config, "cue_offset_floor_radps", 0.0)))
+        self.cue_offset = CueOffset(config.cal_yaw_offset_prior_std_radps, config.steering_ratio, floor, self.dt_s) \
             if self.calibrated and getattr(config, "cue_offset", False) else None
         self.reset()
 

@@ -143,6 +143,9 @@ class LocalizerConfig:
     # drive's); off: every drive starts them from their priors (an ablation: a cold start's minute cannot separate
     # the gyro's offset from them).
     cue_offset_restore: bool = True
+    # ... and what the cues tell of the offset never more certain than this [rad/s], one sigma (their errors that do
+    # not average out); 0: as certain as the blocks make it (CueOffsetConfig.systematic_std_radps)
+    cue_offset_floor_radps: float = 0.0
 
     def __post_init__(self) -> None:
         if self.stride < 1:

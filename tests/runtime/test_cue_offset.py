@@ -118,6 +118,23 @@ def test_exports_hand_over_the_information_once() -> None:
     assert math.sqrt(p) == pytest.approx(std, rel=0.1)
 
 
+def test_a_floor_caps_what_the_exports_tell_however_long_the_cues_agree() -> None:
+    """With ``systematic_std_radps`` the exports, fused one after another, never tell b better than the floor (the
+    cues' errors that do not average out), while the estimator itself grows more certain than that."""
+    from prml2_edge.runtime.cue_offset import CueOffsetConfig
+
+    prior, floor = math.radians(0.5), math.radians(0.1)
+    est = CueOffset(prior, RATIO, CueOffsetConfig(systematic_std_radps=floor))
+    exports = feed(est, rows(5 * 60 * 50, math.radians(0.3), 0.1, 0.002, -0.0005, seed=2))
+    x, p = 0.0, prior ** 2
+    for m, r in exports:
+        g = p / (p + r)
+        x, p = x + g * (m - x), (1 - g) * p
+    assert est.offset[1] < 0.5 * floor
+    assert math.sqrt(p) > 0.95 * floor and x == pytest.approx(est.offset[0], abs=math.radians(0.02))
+    assert math.sqrt(p) == pytest.approx(math.hypot(est.offset[1], floor), rel=0.05)  # the estimate's and the floor's
+
+
 def test_the_ekf_takes_the_offset_as_a_measurement_of_its_state() -> None:
     ekf = Ekf(np.zeros(EkfState.DIM), np.eye(EkfState.DIM), calibration=True)
     before = ekf.cal_cov[0, 0]
