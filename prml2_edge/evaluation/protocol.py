@@ -157,9 +157,11 @@ def filter_override(text: str) -> tuple[str, float]:
         raise ValueError(f"{text!r}: want FIELD=NUMBER with FIELD a LocalizerConfig field "
                          "(prml2_edge/runtime/localizer_config.py)")
     try:
-        return name, float(value)
+        number = float(value)
     except ValueError:
         raise ValueError(f"{text!r}: the value must be a number") from None
+    LocalizerConfig(**{name: number})  # a value the config refuses (its one line) is refused here, not in a worker
+    return name, number
 
 
 def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: int = schema.WINDOW_LEN,

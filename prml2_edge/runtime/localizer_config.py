@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from prml2_edge import schema
@@ -159,3 +160,5 @@ class LocalizerConfig:
                              f"got {self.driven_axle!r}")
         if not self.steering_ratio > 0:
             raise ValueError(f"steering_ratio must be > 0, got {self.steering_ratio}")
+        if not (math.isfinite(self.cue_offset_floor_radps) and self.cue_offset_floor_radps >= 0.0):
+            raise ValueError(f"cue_offset_floor_radps must be >= 0 (0: no floor), got {self.cue_offset_floor_radps}")
