@@ -96,6 +96,10 @@ GAIN = "+ gyro gain learned over the unit's earlier drives"
 CUE = "+ the gyro's offset from the other cues while driving"
 DEFAULT = "+ the cues' own offsets kept from the unit's earlier drives (the runtime's default)"
 OSD_GAIN = "OSD, gyro gain from the unit's earlier drives"
+# the standstill's offset as the runtime's own stop leaves it (evaluation/standstill_restore.py), not the file's floor
+STOOD = "the default, the stop's offset as the runtime's standstill update knows it"
+STOOD_COLD = "the default, the stop's offset as the runtime knows it, the cues' offsets from cold"
+STOOD_NO_CUE = "the default, the stop's offset as the runtime knows it, no cues' offset"
 
 
 NO_COARSE = ("coarse_yaw_resolution_radps", float("inf"))  # the coarse-gyro inflation off
@@ -155,7 +159,10 @@ def variants(model: str) -> dict[str, ModelSpec]:
             QUANT_12_ROW: replace(cal, filter=(QUANT_12,)),
             COURSE_AS_YAW_ROW: replace(cal, filter=(COURSE_AS_YAW,)),
             FINE_UNTIL_ROW: replace(cal, filter=(FINE_UNTIL,)),
-            CONFIGURED_RES_ROW: replace(cal, filter=(CONFIGURED_RES,))}
+            CONFIGURED_RES_ROW: replace(cal, filter=(CONFIGURED_RES,)),
+            STOOD: replace(cal, standstill_restore="runtime"),
+            STOOD_COLD: replace(cal, standstill_restore="runtime", filter=(NO_RESTORE,)),
+            STOOD_NO_CUE: replace(cal, standstill_restore="runtime", filter=(NO_CUE,))}
 
 
 PROTOCOLS = {"paper": 0.0, "deployment": DEPLOYMENT_PREROLL_S}
@@ -273,7 +280,8 @@ def summarise(results: dict[str, list], osd: list, extra: tuple[str, ...] = ()) 
                      "per_car": per_car(res, osd)}
         if OSD_GAIN in results and name != OSD_GAIN and name in (DEFAULT, CUE, GAIN, HELD):  # vs OSD, same gain
             out[name]["paired_vs_osd_gain"] = paired_comparison(results[OSD_GAIN], res)
-        if (name in extra or name == CUE) and DEFAULT in results:  # CUE: the step the default took last
+        if (name in extra or name in (CUE, STOOD, STOOD_COLD, STOOD_NO_CUE)) and DEFAULT in results:  # CUE: the
+            # step the default took last; STOOD*: the standstill's offset as the runtime knows it
             out[name]["paired_vs_default"] = paired_comparison(results[DEFAULT], res)
     return out
 

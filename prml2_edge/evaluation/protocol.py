@@ -30,6 +30,7 @@ from prml2_edge.evaluation.consumer_gnss import (
     GNSS_RATE_HZ,
 )
 from prml2_edge.evaluation.osd import StandstillBias, drive_bias
+from prml2_edge.evaluation.standstill_restore import STANDSTILL_RESTORES, restore_standstill_calibration
 from prml2_edge.guard import physics_guard
 from prml2_edge.schema import EkfState, Z
 
@@ -56,8 +57,10 @@ class ModelSpec:
     const_var: tuple[float, ...] | None = None
     q_scale: float = 1.0
     calibration: bool = False  # the filter's calibration states and raw cues (runtime/filter.py)
-    # with calibration: start from the standstill offset the OSD baseline uses (restore_standstill_calibration)
+    # with calibration: start from the standstill offset the OSD baseline uses (restore_standstill_calibration), known
+    # as the runtime's own standstill update leaves it ("runtime") or as a calibration file restores it ("file")
     standstill_calibration: bool = True
+    standstill_restore: str = "file"
     # with calibration: start from the wheel scale the car's earlier drives taught (the task's wheel_scale)
     wheel_scale_history: bool = True
     filter: tuple[tuple[str, object], ...] = ()  # LocalizerConfig fields to override, (name, value) pairs
@@ -67,6 +70,9 @@ class ModelSpec:
             raise ValueError(f"model kind must be 'onnx' or 'osd', got {self.kind!r}")
         if self.kind == "onnx" and not self.path:
             raise ValueError(f"model {self.name!r}: an ONNX model needs a path")
+        if self.standstill_restore not in STANDSTILL_RESTORES:
+            raise ValueError(f"model {self.name!r}: standstill_restore must be one of {STANDSTILL_RESTORES}, "
+                             f"got {self.standstill_restore!r}")
 
 
 @dataclass(frozen=True)
@@ -309,32 +315,6 @@ def start_state(task: WindowTask) -> np.ndarray:
     return x0
 
 
-def restore_standstill_calibration(loc, bias: StandstillBias, wheel_scale: tuple[float, float] | None = None) -> bool:
-    """Start the calibrated filter from the yaw-rate offset the OSD baseline uses, when it has one, and from the
-    wheel scale the car's earlier drives taught (``wheel_scale``: (scale, variance)), when it has one.
-
-    The OSD baseline subtracts the standstill bias of the drive before the window (else of the whole
-    drive); the calibrated filter starting from the prior would know less than the baseline it is
-    compared with. A car keeps what a standstill taught it, and the wheel scale its GNSS baselines taught, in its
-    calibration file (:mod:`~prml2_edge.runtime.calibration`), so the filter starts from them with at least the
-    file's restore floor as their uncertainty; what it does not know (and the model bias) from the priors. True when
-    anything was restored.
-    """
-    from prml2_edge.evaluation.osd import MIN_STANDSTILL_SAMPLES
-    from prml2_edge.runtime.calibration import RESTORE_STD_FLOOR
-
-    offset = bias.n_samples >= MIN_STANDSTILL_SAMPLES
-    if not offset and wheel_scale is None:
-        return False
-    cfg = loc.config
-    k, k_std = (wheel_scale[0], max(math.sqrt(wheel_scale[1]), RESTORE_STD_FLOOR[1])) if wheel_scale is not None \
-        else (0.0, cfg.cal_wheel_scale_prior_std)
-    std = np.array([RESTORE_STD_FLOOR[0] if offset else cfg.cal_yaw_offset_prior_std_radps, k_std,
-                    cfg.cal_model_bias_std_radps])
-    loc.restore_calibration(np.array([bias.yaw_rate_radps if offset else 0.0, k, 0.0]), np.diag(std**2))
-    return True
-
-
 def localizer_for(spec: ModelSpec, task: WindowTask, stride: int = 1, model=None):
     """``(localizer, recording model)``: the streaming localiser ``spec`` runs ``task`` with, as :func:`run_window`
     sets it up (the protocol's receiver settings, the car's settings, the spec's filter overrides, the calibration
@@ -347,7 +327,8 @@ def localizer_for(spec: ModelSpec, task: WindowTask, stride: int = 1, model=None
     loc = StreamingLocalizer(model, _localizer_config(spec, task, stride), process_noise=process_noise(model,
                                                                                                       spec.q_scale))
     if spec.calibration and spec.standstill_calibration:
-        restore_standstill_calibration(loc, task.bias, task.wheel_scale if spec.wheel_scale_history else None)
+        restore_standstill_calibration(loc, task.bias, task.wheel_scale if spec.wheel_scale_history else None,
+                                       spec.standstill_restore)
         if task.yaw_gain is not None:
             loc.filter.yaw_gain.restore(*task.yaw_gain)
         if task.cue_offsets is not None:

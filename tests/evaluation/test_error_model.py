@@ -13,7 +13,7 @@ from prml2_edge import schema
 from prml2_edge.evaluation.error_model import consistency, fit_inflation, mean_error_ratio
 from prml2_edge.evaluation.models import OsdModel
 from prml2_edge.evaluation.osd import StandstillBias
-from prml2_edge.evaluation.protocol import restore_standstill_calibration
+from prml2_edge.evaluation.standstill_restore import restore_standstill_calibration
 from prml2_edge.runtime.localizer import LocalizerConfig, StreamingLocalizer, omega_var_inflation
 from prml2_edge.schema import CalState, EkfState, Z
 
