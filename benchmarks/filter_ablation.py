@@ -82,6 +82,7 @@ from prml2_edge.evaluation.protocol import (
     split_tasks,
     tune_osd,
 )
+from prml2_edge.evaluation.standstill_restore import STANDSTILL_RESTORES
 from prml2_edge.evaluation.unit_history import HISTORY_MINUTES
 from prml2_edge.progress import Progress
 from prml2_edge.runtime.yaw_gain import YawGainEstimator
@@ -188,23 +189,33 @@ def resimulated(manifest: dict, name: str) -> InMemorySplits:
                                   for d in picked]})
 
 
-def variant_arg(text: str) -> tuple[str, tuple[tuple[str, float], ...]]:
+def variant_arg(text: str) -> tuple[str, tuple[tuple[str, float], ...], dict]:
     """``--variant "LABEL:FIELD=VALUE[,FIELD=VALUE]"``: the runtime's default with numeric LocalizerConfig fields
-    changed (:func:`~prml2_edge.evaluation.protocol.filter_override`), as an extra row (a diagnosis replayed on the
-    same recorded outputs)."""
+    changed (:func:`~prml2_edge.evaluation.protocol.filter_override`), and ``standstill_restore=runtime|file`` (how
+    the benchmark restores the stop's offset, :mod:`~prml2_edge.evaluation.standstill_restore`), as an extra row (a
+    diagnosis replayed on the same recorded outputs)."""
     label, sep, body = text.rpartition(":")
     if not sep or not label:
         raise argparse.ArgumentTypeError(f"{text!r}: want 'LABEL:FIELD=NUMBER[,FIELD=NUMBER]'")
+    pairs, spec = [], {}
     try:
-        return label, tuple(filter_override(item) for item in body.split(","))
+        for item in body.split(","):
+            name, _, value = item.partition("=")
+            if name == "standstill_restore":
+                if value not in STANDSTILL_RESTORES:
+                    raise ValueError(f"{item!r}: standstill_restore is one of {', '.join(STANDSTILL_RESTORES)}")
+                spec[name] = value
+            else:
+                pairs.append(filter_override(item))
     except ValueError as e:
         raise argparse.ArgumentTypeError(f"--variant {label!r}: {e}") from None
+    return label, tuple(pairs), spec
 
 
 def extra_variants(model: str, extra: list) -> dict[str, ModelSpec]:
     """The ``--variant`` rows: the runtime's default (calibration on, gain learned) with their overrides."""
     cal = ModelSpec("PRML2", "onnx", model, calibration=True)
-    return {label: replace(cal, filter=pairs) for label, pairs in extra}
+    return {label: replace(cal, filter=pairs, **spec) for label, pairs, spec in extra}
 
 
 def gain_known(task, gain: float, residual: float):
@@ -342,7 +353,7 @@ def measure(args: argparse.Namespace) -> dict:
                             bounds=lambda t: bound_specs(specs, osd_spec, gains, t))
             if any(len(r) != len(tasks) for r in res.values()):  # a drive without its drawn gain: no bound rows
                 res = {n: r for n, r in res.items() if len(r) == len(tasks)}
-            extra_rows = tuple(label for label, _ in args.variant)
+            extra_rows = tuple(label for label, *_ in args.variant)
             doc["splits"][f"{split} / {protocol}"] = summarise(res, osd, extra=extra_rows)
     return doc
 

@@ -162,3 +162,7 @@ class LocalizerConfig:
             raise ValueError(f"steering_ratio must be > 0, got {self.steering_ratio}")
         if not (math.isfinite(self.cue_offset_floor_radps) and self.cue_offset_floor_radps >= 0.0):
             raise ValueError(f"cue_offset_floor_radps must be >= 0 (0: no floor), got {self.cue_offset_floor_radps}")
+        for name in ("cal_yaw_offset_psd", "cal_wheel_scale_psd"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} must be >= 0 (a random walk's power spectral density), got {value}")
