@@ -45,6 +45,20 @@ MAX_AGE_DAYS = 30.0
 RESTORE_STD_FLOOR = np.array([0.05 * math.pi / 180.0, 0.002, 0.2 * math.pi / 180.0])
 
 
+def checked_gaussian(values, cov, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(values (n,), cov (n, n))`` as float arrays, the covariance made symmetric; ValueError on a wrong shape, a
+    non-finite value, or a covariance that is not positive (semi-)definite (what a calibration file may hold)."""
+    values = np.asarray(values, dtype=np.float64)
+    cov = np.asarray(cov, dtype=np.float64)
+    if values.shape != (n,) or cov.shape != (n, n):
+        raise ValueError(f"want {n} values and a {n}x{n} covariance")
+    cov = 0.5 * (cov + cov.T)
+    if not (np.all(np.isfinite(values)) and np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0.0)
+            and np.linalg.eigvalsh(cov)[0] >= -1e-9 * float(np.max(np.diag(cov)))):
+        raise ValueError("non-finite values or a covariance that is not positive")
+    return values, cov
+
+
 @dataclass
 class CalibrationFile:
     """Load and save the calibration of one vehicle (``identity``) at ``path``."""
@@ -76,10 +90,7 @@ class CalibrationFile:
                 raise ValueError(f"version {data.get('version')!r}, this runtime reads {VERSION}")
             if list(data.get("state_names", [])) != list(CalState.NAMES):
                 raise ValueError(f"states {data.get('state_names')} differ from {list(CalState.NAMES)}")
-            cal = np.asarray(data["cal"], dtype=np.float64).reshape(CalState.DIM)
-            cov = np.asarray(data["cov"], dtype=np.float64).reshape(CalState.DIM, CalState.DIM)
-            if not (np.all(np.isfinite(cal)) and np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0.0)):
-                raise ValueError("non-finite values or a covariance that is not positive")
+            cal, cov = checked_gaussian(data["cal"], data["cov"], CalState.DIM)
             saved = float(data["saved_unix_s"])
         except (OSError, ValueError, KeyError, TypeError) as exc:
             self._refuse(f"corrupt ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})")
@@ -94,8 +105,7 @@ class CalibrationFile:
         if age_days < -1.0 / 24.0:
             self._refuse("saved in the future (check the system clock)")
             return None
-        floor = np.diag(RESTORE_STD_FLOOR**2)
-        cov = 0.5 * (cov + cov.T) + floor
+        cov = cov + np.diag(RESTORE_STD_FLOOR**2)
         self.restored = True
         self.yaw_gain = self._load_gain(data.get("yaw_gain"))
         self.cue_offsets = self._load_cues(data.get("cue_offsets"))

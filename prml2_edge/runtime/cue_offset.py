@@ -38,6 +38,7 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.runtime.axle_speed import rear_speed
+from prml2_edge.runtime.calibration import checked_gaussian
 
 _SIG = schema.SIGNAL_BY_NAME
 _YAW, _AY, _STEER = (_SIG[n].index for n in ("yaw_rate_radps", "lat_accel_mps2", "steering_wheel_angle_rad"))
@@ -54,16 +55,7 @@ RESTORE_STD_FLOOR = (0.03, 0.001 / NOMINAL_TRACK_M, 0.1 * schema.DEG_TO_RAD / (1
 def checked_nuisance(values, cov) -> tuple[np.ndarray, np.ndarray]:
     """The cues' own offsets ``(values (3,), cov (3, 3))`` as float arrays, the covariance made symmetric; ValueError
     on a wrong shape, a non-finite value or a covariance that is not positive (semi-)definite."""
-    n = len(NUISANCE_NAMES)
-    values = np.asarray(values, dtype=np.float64)
-    cov = np.asarray(cov, dtype=np.float64)
-    if values.shape != (n,) or cov.shape != (n, n):
-        raise ValueError(f"want {n} values and a {n}x{n} covariance")
-    cov = 0.5 * (cov + cov.T)
-    if not (np.all(np.isfinite(values)) and np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0.0)
-            and np.linalg.eigvalsh(cov)[0] >= -1e-9 * float(np.max(np.diag(cov)))):
-        raise ValueError("non-finite values or a covariance that is not positive")
-    return values, cov
+    return checked_gaussian(values, cov, len(NUISANCE_NAMES))
 
 
 @dataclass(frozen=True)
@@ -81,7 +73,7 @@ class CueOffsetConfig:
     # the cues' own offsets, one sigma: a_y [m/s^2], rear radius difference over the track [rad/m], steering [rad/m]
     prior_std: tuple[float, float, float] = (0.3, 0.015 / NOMINAL_TRACK_M,
                                              4.0 * schema.DEG_TO_RAD / (15.0 * NOMINAL_WHEELBASE_M))
-    # random walks: each state's variance grows by this per second (b: the filter's offset drift, 0.03 deg/s in
+    # random walks: each state's variance grows by this per second (b: the filter's offset drift, 0.0066 deg/s in
     # 10 min; c: the accelerometer's with temperature; k, d: tyres warming, the column's play)
     psd: tuple[float, float, float, float] = (2.2e-11, 1e-8, 1e-12, 1e-12)
     min_gain: float = 0.5  # an export needs this much information on b, in units of its prior's

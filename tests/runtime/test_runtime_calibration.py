@@ -29,7 +29,7 @@ def test_round_trip_keeps_the_estimate_and_floors_the_covariance(tmp_path):
 
 
 @pytest.mark.parametrize("case", ["garbage", "wrong_format", "nan", "wrong_vehicle", "stale", "future",
-                                  "wrong_states"])
+                                  "wrong_states", "indefinite", "short"])
 def test_a_bad_file_gives_one_warning_and_the_defaults(tmp_path, caplog, case):
     path = tmp_path / "cal.json"
     f = CalibrationFile(path, "car A")
@@ -50,6 +50,10 @@ def test_a_bad_file_gives_one_warning_and_the_defaults(tmp_path, caplog, case):
             doc["saved_unix_s"] = time.time() + 10 * 86400
         elif case == "wrong_states":
             doc["state_names"] = ["a", "b", "c"]
+        elif case == "indefinite":  # positive variances, correlation beyond 1: no Gaussian has it
+            doc["cov"][0][1] = doc["cov"][1][0] = 10.0 * math.sqrt(COV[0, 0] * COV[1, 1])
+        elif case == "short":
+            doc["cal"] = doc["cal"][:2]
         path.write_text(json.dumps(doc))
     with caplog.at_level(logging.WARNING):
         assert CalibrationFile(path, "car A").load() is None
