@@ -81,6 +81,17 @@ class CueOffsetConfig:
     # steering geometry against the nominal, the history's offsets); the exports never add up to more information
     # than 1 / floor^2. 0: none
     systematic_std_radps: float = 0.0
+    # the least uncertainty a restored offset keeps, one sigma, per cue (c, k, d): what can change between drives
+    restore_std_floor: tuple[float, float, float] = RESTORE_STD_FLOOR
+
+    @classmethod
+    def from_localizer(cls, config) -> CueOffsetConfig:
+        """The settings a :class:`~prml2_edge.runtime.localizer_config.LocalizerConfig` gives (its floor under what
+        the cues tell, its steering restore floor); the rest default."""
+        steer = float(getattr(config, "cue_steer_restore_floor_deg", 0.1)) * schema.DEG_TO_RAD \
+            / (15.0 * NOMINAL_WHEELBASE_M)
+        return cls(systematic_std_radps=float(getattr(config, "cue_offset_floor_radps", 0.0)),
+                   restore_std_floor=(RESTORE_STD_FLOOR[0], RESTORE_STD_FLOOR[1], steer))
 
 
 class CueOffset:
@@ -120,11 +131,11 @@ class CueOffset:
 
     def restore(self, values, cov) -> None:
         """Start from the cues' offsets an earlier drive learned (:meth:`nuisance`), their covariance floored at
-        :data:`RESTORE_STD_FLOOR`; ``b`` starts from its prior. Raises ValueError on a wrong shape, a non-finite
-        value or a covariance that is not positive."""
+        ``config.restore_std_floor`` (default :data:`RESTORE_STD_FLOOR`); ``b`` starts from its prior. Raises
+        ValueError on a wrong shape, a non-finite value or a covariance that is not positive."""
         values, cov = checked_nuisance(values, cov)
         P = self._prior.copy()
-        P[1:, 1:] = cov + np.diag(np.square(RESTORE_STD_FLOOR))
+        P[1:, 1:] = cov + np.diag(np.square(self.config.restore_std_floor))
         self._start = (np.concatenate([[0.0], values]), P)
         self.restored = True
         self.reset()

@@ -113,7 +113,7 @@ class PoseFilter(GnssFusion):
         if axle == "rear":
             self._axle_speed = functools.partial(front_speed, steering_ratio=float(config.steering_ratio))
         # the gyro's offset from the other cues (runtime/cue_offset.py): over drives' minutes, so kept across restarts
-        cue_cfg = CueOffsetConfig(systematic_std_radps=float(getattr(config, "cue_offset_floor_radps", 0.0)))
+        cue_cfg = CueOffsetConfig.from_localizer(config)
         self.cue_offset = CueOffset(config.cal_yaw_offset_prior_std_radps, config.steering_ratio, cue_cfg, self.dt_s) \
             if self.calibrated and getattr(config, "cue_offset", False) else None
         self.reset()

@@ -147,6 +147,9 @@ class LocalizerConfig:
     # ... and what the cues tell of the offset never more certain than this [rad/s], one sigma (their errors that do
     # not average out); 0: as certain as the blocks make it (CueOffsetConfig.systematic_std_radps)
     cue_offset_floor_radps: float = 0.0
+    # ... the steering's offset restored with at least this uncertainty [deg of steering-wheel angle], one sigma: its
+    # error follows the drive's mean yaw rate (wheelbase, understeer, lag), not a constant (docs/robustness.md)
+    cue_steer_restore_floor_deg: float = 0.1
 
     def __post_init__(self) -> None:
         if self.stride < 1:
@@ -162,7 +165,7 @@ class LocalizerConfig:
             raise ValueError(f"steering_ratio must be > 0, got {self.steering_ratio}")
         if not (math.isfinite(self.cue_offset_floor_radps) and self.cue_offset_floor_radps >= 0.0):
             raise ValueError(f"cue_offset_floor_radps must be >= 0 (0: no floor), got {self.cue_offset_floor_radps}")
-        for name in ("cal_yaw_offset_psd", "cal_wheel_scale_psd"):
+        for name in ("cal_yaw_offset_psd", "cal_wheel_scale_psd", "cue_steer_restore_floor_deg"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
-                raise ValueError(f"{name} must be >= 0 (a random walk's power spectral density), got {value}")
+                raise ValueError(f"{name} must be a finite number >= 0, got {value}")

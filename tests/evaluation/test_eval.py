@@ -343,7 +343,7 @@ def test_filter_override_parses_a_field_and_says_what_is_wrong_in_one_line():
         filter_override("scale_min_speed_mps=fast")
     with pytest.raises(ValueError, match="cue_offset_floor_radps must be >= 0"):  # refused before any window runs
         filter_override("cue_offset_floor_radps=-1")
-    with pytest.raises(ValueError, match="cal_yaw_offset_psd must be >= 0"):
+    with pytest.raises(ValueError, match="cal_yaw_offset_psd must be a finite number >= 0"):
         filter_override("cal_yaw_offset_psd=-1e-10")
 
 
