@@ -423,6 +423,20 @@ class Ekf:
 COVERAGE_IDEAL_PCT = {k: 100.0 * (1.0 - math.exp(-k * k / 2.0)) for k in (1, 2, 3)}
 
 
+def checked_gaussian(values, cov, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(values (n,), cov (n, n))`` as float arrays, the covariance made symmetric; ValueError on a wrong shape, a
+    non-finite value, or a covariance that is not positive (semi-)definite (what a calibration file may hold)."""
+    values = np.asarray(values, dtype=np.float64)
+    cov = np.asarray(cov, dtype=np.float64)
+    if values.shape != (n,) or cov.shape != (n, n):
+        raise ValueError(f"want {n} values and a {n}x{n} covariance")
+    cov = 0.5 * (cov + cov.T)
+    if not (np.all(np.isfinite(values)) and np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0.0)
+            and np.linalg.eigvalsh(cov)[0] >= -1e-9 * float(np.max(np.diag(cov)))):
+        raise ValueError("non-finite values or a covariance that is not positive")
+    return values, cov
+
+
 def mahalanobis2(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """Squared Mahalanobis distances (n,) of 2D errors (n, 2) under covariances (n, 2, 2) (NaN where singular)."""
     a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]

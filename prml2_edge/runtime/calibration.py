@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from prml2_edge.ekf.numpy_ekf import checked_gaussian
 from prml2_edge.schema import CalState
 
 log = logging.getLogger(__name__)
@@ -43,20 +44,6 @@ SAVE_INTERVAL_S = 60.0
 MAX_AGE_DAYS = 30.0
 # one-sigma floor of a restored estimate: yaw-rate offset [rad/s], wheel scale [1], model bias [rad/s]
 RESTORE_STD_FLOOR = np.array([0.05 * math.pi / 180.0, 0.002, 0.2 * math.pi / 180.0])
-
-
-def checked_gaussian(values, cov, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(values (n,), cov (n, n))`` as float arrays, the covariance made symmetric; ValueError on a wrong shape, a
-    non-finite value, or a covariance that is not positive (semi-)definite (what a calibration file may hold)."""
-    values = np.asarray(values, dtype=np.float64)
-    cov = np.asarray(cov, dtype=np.float64)
-    if values.shape != (n,) or cov.shape != (n, n):
-        raise ValueError(f"want {n} values and a {n}x{n} covariance")
-    cov = 0.5 * (cov + cov.T)
-    if not (np.all(np.isfinite(values)) and np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0.0)
-            and np.linalg.eigvalsh(cov)[0] >= -1e-9 * float(np.max(np.diag(cov)))):
-        raise ValueError("non-finite values or a covariance that is not positive")
-    return values, cov
 
 
 @dataclass

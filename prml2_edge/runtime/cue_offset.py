@@ -37,8 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from prml2_edge import schema
+from prml2_edge.ekf.numpy_ekf import checked_gaussian
 from prml2_edge.runtime.axle_speed import rear_speed
-from prml2_edge.runtime.calibration import checked_gaussian
 
 _SIG = schema.SIGNAL_BY_NAME
 _YAW, _AY, _STEER = (_SIG[n].index for n in ("yaw_rate_radps", "lat_accel_mps2", "steering_wheel_angle_rad"))
