@@ -87,11 +87,12 @@ class CueOffsetConfig:
     @classmethod
     def from_localizer(cls, config) -> CueOffsetConfig:
         """The settings a :class:`~prml2_edge.runtime.localizer_config.LocalizerConfig` gives (its floor under what
-        the cues tell, its steering restore floor); the rest default."""
+        the cues tell, its a_y and steering restore floors); the rest default."""
         steer = float(getattr(config, "cue_steer_restore_floor_deg", 0.1)) * schema.DEG_TO_RAD \
             / (15.0 * NOMINAL_WHEELBASE_M)
         return cls(systematic_std_radps=float(getattr(config, "cue_offset_floor_radps", 0.0)),
-                   restore_std_floor=(RESTORE_STD_FLOOR[0], RESTORE_STD_FLOOR[1], steer))
+                   restore_std_floor=(float(getattr(config, "cue_ay_restore_floor_mps2", RESTORE_STD_FLOOR[0])),
+                                      RESTORE_STD_FLOOR[1], steer))
 
 
 class CueOffset:

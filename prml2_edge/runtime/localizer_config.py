@@ -151,6 +151,9 @@ class LocalizerConfig:
     # error follows the drive's mean yaw rate (wheelbase, understeer, lag), not a constant. 0.3 and 1 tried on
     # validation: van_fwd's dry_val loss does not move, snow_val's deployment a little worse (docs/ablation.md)
     cue_steer_restore_floor_deg: float = 0.1
+    # ... the lateral accelerometer's offset restored with at least this uncertainty [m/s^2], one sigma (its prior is
+    # 0.3)
+    cue_ay_restore_floor_mps2: float = 0.03
 
     def __post_init__(self) -> None:
         if self.stride < 1:
@@ -166,7 +169,8 @@ class LocalizerConfig:
             raise ValueError(f"steering_ratio must be > 0, got {self.steering_ratio}")
         if not (math.isfinite(self.cue_offset_floor_radps) and self.cue_offset_floor_radps >= 0.0):
             raise ValueError(f"cue_offset_floor_radps must be >= 0 (0: no floor), got {self.cue_offset_floor_radps}")
-        for name in ("cal_yaw_offset_psd", "cal_wheel_scale_psd", "cue_steer_restore_floor_deg"):
+        for name in ("cal_yaw_offset_psd", "cal_wheel_scale_psd", "cue_steer_restore_floor_deg",
+                     "cue_ay_restore_floor_mps2"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value}")

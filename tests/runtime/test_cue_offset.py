@@ -88,7 +88,7 @@ def test_restore_floors_the_covariance_starts_b_from_its_prior_and_refuses_bad_v
             CueOffset(math.radians(0.5), RATIO).restore(*bad)
 
 
-def test_the_steering_restore_floor_is_a_setting_of_the_runtime() -> None:
+def test_the_a_y_and_steering_restore_floors_are_settings_of_the_runtime() -> None:
     from prml2_edge.runtime.cue_offset import CueOffsetConfig
     from prml2_edge.runtime.localizer_config import LocalizerConfig
 
@@ -98,6 +98,11 @@ def test_the_steering_restore_floor_is_a_setting_of_the_runtime() -> None:
     est.restore(np.zeros(3), np.eye(3) * 1e-20)
     assert math.sqrt(est.P[3, 3]) == pytest.approx(math.radians(1.0) / (15.0 * NOMINAL_WHEELBASE_M))
     assert math.sqrt(est.P[1, 1]) == pytest.approx(RESTORE_STD_FLOOR[0])  # the other cues' floors unchanged
+    est = CueOffset(math.radians(0.5), RATIO, CueOffsetConfig.from_localizer(
+        LocalizerConfig(cue_ay_restore_floor_mps2=0.3)))
+    est.restore(np.zeros(3), np.eye(3) * 1e-20)
+    assert math.sqrt(est.P[1, 1]) == pytest.approx(0.3) and math.sqrt(est.P[3, 3]) == pytest.approx(
+        RESTORE_STD_FLOOR[2])
     with pytest.raises(ValueError, match="cue_steer_restore_floor_deg must be a finite number >= 0"):
         LocalizerConfig(cue_steer_restore_floor_deg=float("nan"))
 
