@@ -47,9 +47,17 @@ _NEEDED = (_YAW, _AY, _STEER, _RL, _RR)
 NOMINAL_TRACK_M = 1.55
 NOMINAL_WHEELBASE_M = 2.7
 NUISANCE_NAMES = ("lat_accel_offset_mps2", "rear_radius_diff_radpm", "steering_offset_radpm")
+
+
+def steering_offset(deg: float) -> float:
+    """A steering-wheel angle offset [deg] as the steering cue's offset state ``d`` [rad/m] (nominal ratio 15 and
+    wheelbase)."""
+    return deg * schema.DEG_TO_RAD / (15.0 * NOMINAL_WHEELBASE_M)
+
+
 # one-sigma floor of restored cue offsets: they move between drives (the accelerometer with temperature, tyre
 # pressure, the column's play), so a restored estimate is a strong prior, not a certainty
-RESTORE_STD_FLOOR = (0.03, 0.001 / NOMINAL_TRACK_M, 0.1 * schema.DEG_TO_RAD / (15.0 * NOMINAL_WHEELBASE_M))
+RESTORE_STD_FLOOR = (0.03, 0.001 / NOMINAL_TRACK_M, steering_offset(0.1))
 
 
 def checked_nuisance(values, cov) -> tuple[np.ndarray, np.ndarray]:
@@ -72,7 +80,7 @@ class CueOffsetConfig:
                                                    0.5 * schema.DEG_TO_RAD)
     # the cues' own offsets, one sigma: a_y [m/s^2], rear radius difference over the track [rad/m], steering [rad/m]
     prior_std: tuple[float, float, float] = (0.3, 0.015 / NOMINAL_TRACK_M,
-                                             4.0 * schema.DEG_TO_RAD / (15.0 * NOMINAL_WHEELBASE_M))
+                                             steering_offset(4.0))
     # random walks: each state's variance grows by this per second (b: the filter's offset drift, 0.0066 deg/s in
     # 10 min; c: the accelerometer's with temperature; k, d: tyres warming, the column's play)
     psd: tuple[float, float, float, float] = (2.2e-11, 1e-8, 1e-12, 1e-12)
@@ -88,11 +96,9 @@ class CueOffsetConfig:
     def from_localizer(cls, config) -> CueOffsetConfig:
         """The settings a :class:`~prml2_edge.runtime.localizer_config.LocalizerConfig` gives (its floor under what
         the cues tell, its a_y and steering restore floors); the rest default."""
-        steer = float(getattr(config, "cue_steer_restore_floor_deg", 0.1)) * schema.DEG_TO_RAD \
-            / (15.0 * NOMINAL_WHEELBASE_M)
-        return cls(systematic_std_radps=float(getattr(config, "cue_offset_floor_radps", 0.0)),
-                   restore_std_floor=(float(getattr(config, "cue_ay_restore_floor_mps2", RESTORE_STD_FLOOR[0])),
-                                      RESTORE_STD_FLOOR[1], steer))
+        return cls(systematic_std_radps=float(config.cue_offset_floor_radps),
+                   restore_std_floor=(float(config.cue_ay_restore_floor_mps2), RESTORE_STD_FLOOR[1],
+                                      steering_offset(float(config.cue_steer_restore_floor_deg))))
 
 
 class CueOffset:
