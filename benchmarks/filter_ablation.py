@@ -71,6 +71,7 @@ import numpy as np
 
 from prml2_edge.bench.results import announce, finish
 from prml2_edge.data.datasets import load_dataset
+from prml2_edge.evaluation import unit_history
 from prml2_edge.evaluation.metrics import coverage, coverage_text, dr_summary, paired_comparison, paired_text
 from prml2_edge.evaluation.models import RecordingModel, ReplayModel
 from prml2_edge.evaluation.protocol import (
@@ -337,7 +338,7 @@ def measure(args: argparse.Namespace) -> dict:
              if "yaw_scale_error" in d.meta.get("sensor_errors", {})}
     extra = {n: resimulated(dataset.manifest, n) for n in RESIMULATED if n in args.splits}
     doc = {"data": str(args.data), "model": str(args.model), "osd_q_scale": osd_spec.q_scale,
-           "history_min": args.history_min, "splits": {}}
+           "history_min": args.history_min, "history_drive_draw": unit_history.CUE_DRIVE_DRAW, "splits": {}}
     for split in args.splits:
         for protocol, pre in ((p, PROTOCOLS[p]) for p in args.protocols):
             source = extra.get(split, dataset)
@@ -444,6 +445,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-windows", type=int, default=None, help="at most N windows per drive segment")
     p.add_argument("--history-min", type=float, default=HISTORY_MINUTES,
                    help="minutes of the car's earlier drives behind its calibration file's gyro gain (0: none)")
+    p.add_argument("--history-drive-draw", action="store_true",
+                   help="the evaluated drive one draw about its car's cue offsets, like its history drives "
+                        "(unit_history.CUE_DRIVE_DRAW); default: the drive at the car's mean")
     p.add_argument("--variant", action="append", default=[], type=variant_arg, metavar="LABEL:FIELD=VALUE,...",
                    help="an extra row: the default with these LocalizerConfig fields changed (repeatable)")
     p.add_argument("--protocols", nargs="+", choices=tuple(PROTOCOLS), default=list(PROTOCOLS),
@@ -451,6 +455,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=str(OUT), help=f"result JSON (default {OUT.relative_to(HERE.parent)})")
     args = p.parse_args(argv)
     t0 = time.monotonic()
+    unit_history.CUE_DRIVE_DRAW = args.history_drive_draw  # before any history is simulated (split_tasks)
     doc = {"machine": announce("filter_ablation"), **measure(args)}
     finish(doc, args.out, markdown, t0)
     return 0

@@ -21,7 +21,11 @@ which on the simulator's cars (0.3 % spread) let 30 s of noisy baselines move th
 The history drives also keep the drive's accelerometer and steering offsets (the unit's mounting and the steering's
 alignment), each with a per-drive variation (``CUE_VARIATION``: temperature, the column's play). The runtime's cue
 estimator (:mod:`prml2_edge.runtime.cue_offset`) runs over them, each drive starting the gyro's offset from its
-prior, and :func:`cue_evidence` hands back the cues' own offsets the file would hold.
+prior, and :func:`cue_evidence` hands back the cues' own offsets the file would hold, as the drive's own estimate
+hands them on (``"drive"``) and as the car's mean over the drives (``"car_mean"``,
+``LocalizerConfig.cue_offset_car_mean``). With ``CUE_DRIVE_DRAW`` set the drive is itself one draw about the car's
+offsets (the car's = the drive's plus one variation, the history's about the car's): without it the drive sits at
+the car's mean, which flatters an estimator that averages the history.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ HISTORY_DRIVES = 4
 GAIN_VARIATION = 0.002  # per-drive spread of a sensor's gain around its own (temperature), one sigma
 # per-drive spread of the accelerometer's offset [m/s^2] and the steering's [rad] around the car's, one sigma
 CUE_VARIATION = (0.03, 0.1 * schema.DEG_TO_RAD)
+CUE_DRIVE_DRAW = False  # the drive one draw about the car's cue offsets too (module docstring); a benchmark's switch
 _CACHE: dict[tuple, dict] = {}
 
 
@@ -65,10 +70,11 @@ def wheel_scale_evidence(drive, minutes: float = HISTORY_MINUTES, drives: int = 
 
 
 def cue_evidence(drive, minutes: float = HISTORY_MINUTES, drives: int = HISTORY_DRIVES,
-                 variation: float = GAIN_VARIATION) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(values (3,), cov (3, 3))`` of the cues' own offsets the runtime's cue estimator learned over the history
-    (:meth:`~prml2_edge.runtime.cue_offset.CueOffset.nuisance`, before the restore floor), or None (not a simulated
-    drive of the fleet, or no history asked for)."""
+                 variation: float = GAIN_VARIATION) -> dict[str, tuple[np.ndarray, np.ndarray]] | None:
+    """``{"drive" | "car_mean": (values (3,), cov (3, 3))}``: the cues' own offsets the runtime's cue estimator
+    learned over the history (:meth:`~prml2_edge.runtime.cue_offset.CueOffset.nuisance`, before the restore floor),
+    handed on as each drive's own or as the car's mean (``LocalizerConfig.cue_offset_car_mean``); None (not a
+    simulated drive of the fleet, or no history asked for)."""
     hist = _history(drive, minutes, drives, variation)
     return None if hist is None else hist["cues"]
 
@@ -80,7 +86,7 @@ def _history(drive, minutes: float, drives: int, variation: float) -> dict | Non
     gain = (meta.get("sensor_errors") or {}).get("yaw_scale_error")
     if minutes <= 0.0 or drives < 1 or gain is None or str(meta.get("vehicle")) not in CARS:
         return None
-    key = (drive.name, str(meta["vehicle"]), float(gain), minutes, drives, variation)
+    key = (drive.name, str(meta["vehicle"]), float(gain), minutes, drives, variation, CUE_DRIVE_DRAW)
     if key not in _CACHE:  # split_tasks asks once per protocol
         _CACHE[key] = _simulate_history(drive, float(gain), minutes, drives, variation)
     return _CACHE[key]
@@ -108,29 +114,33 @@ def _simulate_history(drive, gain: float, minutes: float, drives: int, variation
     est = YawGainEstimator(math.radians(GNSS_HEADING_STD_DEG))
     settings = CARS[str(meta["vehicle"])].filter_settings()  # (_history: a car of the fleet)
     scale = WheelScaleHistory(**settings)
-    cues = _cue_estimator(settings["steering_ratio"])
+    cues = {how: _cue_estimator(settings["steering_ratio"], how == "car_mean") for how in ("drive", "car_mean")}
     cue_rng = np.random.default_rng([zlib.crc32(drive.name.encode()), 0x43554553])  # "CUES": the gain's draws stay
+    car = _car_cue_errors(meta, np.random.default_rng([zlib.crc32(drive.name.encode()), 0x43415253])) \
+        if CUE_DRIVE_DRAW else meta.get("sensor_errors") or {}  # ("CARS")
     for j in range(drives):
         g = gain + float(rng.normal(0.0, variation))
         errors = {"yaw_scale_error": g} | ({"wheel_radius_error": tuple(tyres)} if tyres is not None else {}) \
-            | _car_cue_errors(meta, cue_rng)
+            | _car_cue_errors({"sensor_errors": car}, cue_rng)
         hist = simulate_drive(minutes / drives, 1.0, int(rng.integers(1 << 31)), "mixed", f"{drive.name}_history{j}",
                               sensor_errors=errors, vehicle=str(meta["vehicle"]))
         if not coarse:
             feed(est, hist, rng)
         scale.feed(hist, rng)
-        if j:
-            cues.new_drive()
-        feed_cues(cues, hist)
+        for est_cues in cues.values():
+            if j:
+                est_cues.new_drive()
+            feed_cues(est_cues, hist)
     return {"gain": None if coarse else (est.info, est.info_c), "scale": (scale.k, scale.var),
-            "cues": cues.nuisance()}
+            "cues": {how: c.nuisance() for how, c in cues.items()}}
 
 
-def _cue_estimator(steering_ratio: float):
-    from prml2_edge.runtime.cue_offset import CueOffset
+def _cue_estimator(steering_ratio: float, car_mean: bool = False):
+    from prml2_edge.runtime.cue_offset import CueOffset, CueOffsetConfig
     from prml2_edge.runtime.localizer import LocalizerConfig
 
-    return CueOffset(LocalizerConfig().cal_yaw_offset_prior_std_radps, steering_ratio)
+    cfg = LocalizerConfig(cue_offset_car_mean=car_mean)
+    return CueOffset(cfg.cal_yaw_offset_prior_std_radps, steering_ratio, CueOffsetConfig.from_localizer(cfg))
 
 
 def _car_cue_errors(meta: dict, rng: np.random.Generator) -> dict:

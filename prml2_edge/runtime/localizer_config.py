@@ -155,6 +155,9 @@ class LocalizerConfig:
     # 0.3). 0.12 and 0.3 tried on validation: the van's dry_val windows 3.74 -> 3.08 m, but val's real-car drives
     # +5.7 m worse: the kept a_y offset is most of what the kept cues give them (docs/ablation.md)
     cue_ay_restore_floor_mps2: float = 0.03
+    # ... and what a drive hands the next: the car's mean over its drives (each drive one draw about it with the
+    # restore floors' spread) instead of the drive's own offsets, which the last drive dominates (runtime/cue_offset.py)
+    cue_offset_car_mean: bool = False
 
     def __post_init__(self) -> None:
         if self.stride < 1:
