@@ -52,7 +52,7 @@ Usage::
 
     .venv/bin/python benchmarks/filter_ablation.py --data data/bench --model export/default/prml2_edge.onnx \\
         [--splits val test] [--jobs 2] [--max-windows N] [--history-min 20] [--protocols paper deployment]
-        [--variant "no wheel scale from GNSS:scale_min_speed_mps=1e9"]
+        [--variant "no wheel scale from GNSS:scale_min_speed_mps=1e9"] [--history-drive-at-mean]
     .venv/bin/python benchmarks/render_tables.py
 """
 
@@ -338,7 +338,7 @@ def measure(args: argparse.Namespace) -> dict:
              if "yaw_scale_error" in d.meta.get("sensor_errors", {})}
     extra = {n: resimulated(dataset.manifest, n) for n in RESIMULATED if n in args.splits}
     doc = {"data": str(args.data), "model": str(args.model), "osd_q_scale": osd_spec.q_scale,
-           "history_min": args.history_min, "history_drive_draw": unit_history.CUE_DRIVE_DRAW, "splits": {}}
+           "history_min": args.history_min, "history_drive_draw": unit_history.DRIVE_DRAW, "splits": {}}
     for split in args.splits:
         for protocol, pre in ((p, PROTOCOLS[p]) for p in args.protocols):
             source = extra.get(split, dataset)
@@ -445,9 +445,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-windows", type=int, default=None, help="at most N windows per drive segment")
     p.add_argument("--history-min", type=float, default=HISTORY_MINUTES,
                    help="minutes of the car's earlier drives behind its calibration file's gyro gain (0: none)")
-    p.add_argument("--history-drive-draw", action="store_true",
-                   help="the evaluated drive one draw about its car's cue offsets, like its history drives "
-                        "(unit_history.CUE_DRIVE_DRAW); default: the drive at the car's mean")
+    p.add_argument("--history-drive-at-mean", action="store_true",
+                   help="the car's earlier drives vary about the evaluated drive's gain and cue offsets (before "
+                        "2026-12-07; default: the drive is one draw about its car, unit_history.DRIVE_DRAW)")
     p.add_argument("--variant", action="append", default=[], type=variant_arg, metavar="LABEL:FIELD=VALUE,...",
                    help="an extra row: the default with these LocalizerConfig fields changed (repeatable)")
     p.add_argument("--protocols", nargs="+", choices=tuple(PROTOCOLS), default=list(PROTOCOLS),
@@ -455,7 +455,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=str(OUT), help=f"result JSON (default {OUT.relative_to(HERE.parent)})")
     args = p.parse_args(argv)
     t0 = time.monotonic()
-    unit_history.CUE_DRIVE_DRAW = args.history_drive_draw  # before any history is simulated (split_tasks)
+    unit_history.DRIVE_DRAW = not args.history_drive_at_mean  # before any history is simulated (split_tasks)
     doc = {"machine": announce("filter_ablation"), **measure(args)}
     finish(doc, args.out, markdown, t0)
     return 0

@@ -23,9 +23,12 @@ alignment), each with a per-drive variation (``CUE_VARIATION``: temperature, the
 estimator (:mod:`prml2_edge.runtime.cue_offset`) runs over them, each drive starting the gyro's offset from its
 prior, and :func:`cue_evidence` hands back the cues' own offsets the file would hold, as the drive's own estimate
 hands them on (``"drive"``) and as the car's mean over the drives (``"car_mean"``,
-``LocalizerConfig.cue_offset_car_mean``). With ``CUE_DRIVE_DRAW`` set the drive is itself one draw about the car's
-offsets (the car's = the drive's plus one variation, the history's about the car's): without it the drive sits at
-the car's mean, which flatters an estimator that averages the history.
+``LocalizerConfig.cue_offset_car_mean``).
+
+The drive is itself one draw about its car (``DRIVE_DRAW``, the default): the car's gain and cue offsets are the
+drive's plus one per-drive variation, and the history drives vary about the car's. Before (``DRIVE_DRAW = False``)
+the history varied about the drive's own values, so the drive sat at the car's mean and a file that averages its
+drives knew the drive's gain and offsets about twice as well as a real one can.
 """
 
 from __future__ import annotations
@@ -49,7 +52,7 @@ HISTORY_DRIVES = 4
 GAIN_VARIATION = 0.002  # per-drive spread of a sensor's gain around its own (temperature), one sigma
 # per-drive spread of the accelerometer's offset [m/s^2] and the steering's [rad] around the car's, one sigma
 CUE_VARIATION = (0.03, 0.1 * schema.DEG_TO_RAD)
-CUE_DRIVE_DRAW = False  # the drive one draw about the car's cue offsets too (module docstring); a benchmark's switch
+DRIVE_DRAW = True  # the drive one draw about its car's gain and cue offsets (module docstring); a benchmark's switch
 _CACHE: dict[tuple, dict] = {}
 
 
@@ -86,7 +89,7 @@ def _history(drive, minutes: float, drives: int, variation: float) -> dict | Non
     gain = (meta.get("sensor_errors") or {}).get("yaw_scale_error")
     if minutes <= 0.0 or drives < 1 or gain is None or str(meta.get("vehicle")) not in CARS:
         return None
-    key = (drive.name, str(meta["vehicle"]), float(gain), minutes, drives, variation, CUE_DRIVE_DRAW)
+    key = (drive.name, str(meta["vehicle"]), float(gain), minutes, drives, variation, DRIVE_DRAW)
     if key not in _CACHE:  # split_tasks asks once per protocol
         _CACHE[key] = _simulate_history(drive, float(gain), minutes, drives, variation)
     return _CACHE[key]
@@ -116,8 +119,10 @@ def _simulate_history(drive, gain: float, minutes: float, drives: int, variation
     scale = WheelScaleHistory(**settings)
     cues = {how: _cue_estimator(settings["steering_ratio"], how == "car_mean") for how in ("drive", "car_mean")}
     cue_rng = np.random.default_rng([zlib.crc32(drive.name.encode()), 0x43554553])  # "CUES": the gain's draws stay
-    car = _car_cue_errors(meta, np.random.default_rng([zlib.crc32(drive.name.encode()), 0x43415253])) \
-        if CUE_DRIVE_DRAW else meta.get("sensor_errors") or {}  # ("CARS")
+    # the car's gain and cue offsets: the drive's, or (DRIVE_DRAW) the drive's plus one per-drive variation
+    car_rng = np.random.default_rng([zlib.crc32(drive.name.encode()), 0x43415253])  # "CARS"
+    car = _car_cue_errors(meta, car_rng) if DRIVE_DRAW else meta.get("sensor_errors") or {}
+    gain = gain + float(car_rng.normal(0.0, variation)) if DRIVE_DRAW else gain
     for j in range(drives):
         g = gain + float(rng.normal(0.0, variation))
         errors = {"yaw_scale_error": g} | ({"wheel_radius_error": tuple(tyres)} if tyres is not None else {}) \
