@@ -145,3 +145,29 @@ def test_the_filter_divides_the_yaw_cue_by_the_restored_gain(tmp_path):
            (("learned", learned), ("unknown", unknown), ("off", off))}
     assert err["unknown"] > math.radians(0.2) and err["off"] == pytest.approx(err["unknown"])
     assert err["learned"] < 0.2 * err["unknown"]
+
+
+def test_the_drive_is_one_draw_about_its_car_not_its_cars_mean(monkeypatch):
+    """``unit_history.DRIVE_DRAW``: the history drives vary about the car's gain and cue offsets, and the car's are
+    the drive's plus one per-drive variation, the same shift for every history drive; without it the history
+    varies about the drive's own values (the drive at its car's mean, as before)."""
+    from prml2_edge.evaluation import unit_history
+
+    drive = simulate_drive(0.3, 1.0, 4, "mixed", "draw_car", vehicle="compact_fwd",
+                           sensor_errors={"yaw_scale_error": 0.01, "lat_offset_mps2": 0.1,
+                                          "steer_offset_rad": math.radians(1.0)})
+    real = simulate_drive
+    seen: dict[bool, list[dict]] = {}
+
+    def spy(*args, sensor_errors, **kwargs):
+        seen[unit_history.DRIVE_DRAW].append(dict(sensor_errors))
+        return real(*args, sensor_errors=sensor_errors, **kwargs)
+
+    monkeypatch.setattr("prml2_edge.data.simulate.simulate_drive", spy)
+    for draw in (False, True):
+        monkeypatch.setattr(unit_history, "DRIVE_DRAW", draw)
+        seen[draw] = []
+        assert unit_history.gain_evidence(drive, minutes=0.8, drives=4) is not None
+    for name in ("yaw_scale_error", "lat_offset_mps2", "steer_offset_rad"):
+        shift = [a[name] - b[name] for a, b in zip(seen[True], seen[False], strict=True)]
+        assert len(shift) == 4 and np.ptp(shift) < 1e-12 and abs(shift[0]) > 0.0, name
