@@ -334,6 +334,8 @@ def localizer_for(spec: ModelSpec, task: WindowTask, stride: int = 1, model=None
             loc.filter.yaw_gain.restore(*task.yaw_gain)
         if task.cue_offsets is not None:
             loc.restore_cue_offsets(*task.cue_offsets["car_mean" if loc.config.cue_offset_car_mean else "drive"])
+            if loc.config.cue_release_on_stop and task.bias.episodes and loc.filter.cue_offset is not None:
+                loc.filter.cue_offset.release()  # the runtime stood through the drive's stop before the window
     if not spec.guard:
         loc.a_max_mps2 = NO_GUARD_A_MAX_MPS2  # ablation: no friction-circle bound (speed/yaw-rate bounds stay)
     return loc, model

@@ -136,6 +136,7 @@ class CueOffset:
         self._sums = np.zeros(5)  # gyro − a_y/v, gyro − rear, gyro − steering, 1/v, v
         self._n = 0
         self.blocks = 0
+        self.released = False  # (release)
         self._nis_sum = np.zeros(3)  # per cue: innovation squared over its predicted variance, summed over blocks
         self.restart_export()  # (b, var) at the last export
 
@@ -172,6 +173,17 @@ class CueOffset:
         self._start = (np.concatenate([[0.0], values]), P)
         self.restored = True
         self.reset()
+
+    def release(self) -> None:
+        """The cues' own offsets loosened to their priors' uncertainty (their estimates kept as the mean), once per
+        drive (:meth:`reset` arms it again): a stop has told the gyro's offset, so the drive's blocks teach the cues'
+        offsets against it."""
+        if self.released:
+            return
+        prior = np.diag(self._prior)[1:]
+        self.P[0, 1:] = self.P[1:, 0] = 0.0
+        self.P[1:, 1:] = np.diag(np.maximum(np.diag(self.P)[1:], prior))
+        self.released = True
 
     def new_drive(self) -> None:
         """Between two drives of one car: what was learned of the cues' offsets stays, ``b`` back to its prior."""
@@ -236,8 +248,8 @@ class CueOffset:
         """For the run's summary: the blocks used, the offset the cues tell with its sigma [deg/s] and the NIS (None
         before the first block: the summary is written as strict JSON, which has no NaN)."""
         b, std = self.offset
-        return {"blocks": self.blocks, "restored": self.restored, "yaw_rate_offset_dps": math.degrees(b),
-                "yaw_rate_offset_std_dps": math.degrees(std),
+        return {"blocks": self.blocks, "restored": self.restored, "released": self.released,
+                "yaw_rate_offset_dps": math.degrees(b), "yaw_rate_offset_std_dps": math.degrees(std),
                 "nis": [round(float(x), 3) for x in self.nis] if self.blocks else None}
 
     def export(self) -> tuple[float, float] | None:

@@ -158,6 +158,10 @@ class LocalizerConfig:
     # ... and what a drive hands the next: the car's mean over its drives (each drive one draw about it with the
     # restore floors' spread) instead of the drive's own offsets, which the last drive dominates (runtime/cue_offset.py)
     cue_offset_car_mean: bool = False
+    # ... and loosened to their priors (the estimates kept as the mean) at the drive's first stop: the stop tells the
+    # gyro's offset, against which the drive's own blocks learn the cues' offsets, and the kept ones' per-drive error
+    # no longer buys anything (runtime/cue_offset.py: CueOffset.release)
+    cue_release_on_stop: bool = False
 
     def __post_init__(self) -> None:
         if self.stride < 1:
