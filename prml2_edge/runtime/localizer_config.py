@@ -156,11 +156,13 @@ class LocalizerConfig:
     # +5.7 m worse: the kept a_y offset is most of what the kept cues give them (docs/ablation.md)
     cue_ay_restore_floor_mps2: float = 0.03
     # ... and what a drive hands the next: the car's mean over its drives (each drive one draw about it with the
-    # restore floors' spread) instead of the drive's own offsets, which the last drive dominates (runtime/cue_offset.py)
+    # restore floors' spread) instead of the drive's own offsets, which the last drive dominates
+    # (runtime/cue_offset.py). On validation not better (val's real-car drives +1.3 m [-0.5, +3.3]; docs/ablation.md)
     cue_offset_car_mean: bool = False
     # ... and loosened to their priors (the estimates kept as the mean) at the drive's first stop: the stop tells the
     # gyro's offset, against which the drive's own blocks learn the cues' offsets, and the kept ones' per-drive error
-    # no longer buys anything (runtime/cue_offset.py: CueOffset.release)
+    # no longer buys anything (runtime/cue_offset.py: CueOffset.release). On validation it is the cold cues on the
+    # stopped drives and loses snow_val's deployment windows (+0.76 m [+0.15, +1.59]; docs/ablation.md)
     cue_release_on_stop: bool = False
 
     def __post_init__(self) -> None:
