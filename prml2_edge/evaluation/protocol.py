@@ -108,9 +108,8 @@ class WindowTask:
     vehicle: str = ""
     # the cue axle's wheel scale the same history's GNSS baselines taught the file: (scale, variance); None: none
     wheel_scale: tuple[float, float] | None = None
-    # the cues' own offsets the same history taught the cue estimator, {"drive" | "car_mean": (values (3,), cov (3,
-    # 3))} as each drive hands them on or as the car's mean (LocalizerConfig.cue_offset_car_mean); None: none
-    cue_offsets: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
+    # the cues' own offsets the same history taught the cue estimator: (values (3,), cov (3, 3)); None: none
+    cue_offsets: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def key(self) -> str:
@@ -333,9 +332,7 @@ def localizer_for(spec: ModelSpec, task: WindowTask, stride: int = 1, model=None
         if task.yaw_gain is not None:
             loc.filter.yaw_gain.restore(*task.yaw_gain)
         if task.cue_offsets is not None:
-            loc.restore_cue_offsets(*task.cue_offsets["car_mean" if loc.config.cue_offset_car_mean else "drive"])
-            if loc.config.cue_release_on_stop and task.bias.episodes and loc.filter.cue_offset is not None:
-                loc.filter.cue_offset.release()  # the runtime stood through the drive's stop before the window
+            loc.restore_cue_offsets(*task.cue_offsets)
     if not spec.guard:
         loc.a_max_mps2 = NO_GUARD_A_MAX_MPS2  # ablation: no friction-circle bound (speed/yaw-rate bounds stay)
     return loc, model

@@ -21,9 +21,7 @@ which on the simulator's cars (0.3 % spread) let 30 s of noisy baselines move th
 The history drives also keep the drive's accelerometer and steering offsets (the unit's mounting and the steering's
 alignment), each with a per-drive variation (``CUE_VARIATION``: temperature, the column's play). The runtime's cue
 estimator (:mod:`prml2_edge.runtime.cue_offset`) runs over them, each drive starting the gyro's offset from its
-prior, and :func:`cue_evidence` hands back the cues' own offsets the file would hold, as the drive's own estimate
-hands them on (``"drive"``) and as the car's mean over the drives (``"car_mean"``,
-``LocalizerConfig.cue_offset_car_mean``).
+prior, and :func:`cue_evidence` hands back the cues' own offsets the file would hold.
 
 The drive is itself one draw about its car (``DRIVE_DRAW``, the default): the car's gain and cue offsets are the
 drive's plus one per-drive variation, and the history drives vary about the car's. Before (``DRIVE_DRAW = False``)
@@ -73,11 +71,10 @@ def wheel_scale_evidence(drive, minutes: float = HISTORY_MINUTES, drives: int = 
 
 
 def cue_evidence(drive, minutes: float = HISTORY_MINUTES, drives: int = HISTORY_DRIVES,
-                 variation: float = GAIN_VARIATION) -> dict[str, tuple[np.ndarray, np.ndarray]] | None:
-    """``{"drive" | "car_mean": (values (3,), cov (3, 3))}``: the cues' own offsets the runtime's cue estimator
-    learned over the history (:meth:`~prml2_edge.runtime.cue_offset.CueOffset.nuisance`, before the restore floor),
-    handed on as each drive's own or as the car's mean (``LocalizerConfig.cue_offset_car_mean``); None (not a
-    simulated drive of the fleet, or no history asked for)."""
+                 variation: float = GAIN_VARIATION) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(values (3,), cov (3, 3))``: the cues' own offsets the runtime's cue estimator learned over the history
+    (:meth:`~prml2_edge.runtime.cue_offset.CueOffset.nuisance`, before the restore floor); None (not a simulated
+    drive of the fleet, or no history asked for)."""
     hist = _history(drive, minutes, drives, variation)
     return None if hist is None else hist["cues"]
 
@@ -117,7 +114,7 @@ def _simulate_history(drive, gain: float, minutes: float, drives: int, variation
     est = YawGainEstimator(math.radians(GNSS_HEADING_STD_DEG))
     settings = CARS[str(meta["vehicle"])].filter_settings()  # (_history: a car of the fleet)
     scale = WheelScaleHistory(**settings)
-    cues = {how: _cue_estimator(settings["steering_ratio"], how == "car_mean") for how in ("drive", "car_mean")}
+    cues = _cue_estimator(settings["steering_ratio"])
     cue_rng = np.random.default_rng([zlib.crc32(drive.name.encode()), 0x43554553])  # "CUES": the gain's draws stay
     # the car's gain and cue offsets: the drive's, or (DRIVE_DRAW) the drive's plus one per-drive variation
     car_rng = np.random.default_rng([zlib.crc32(drive.name.encode()), 0x43415253])  # "CARS"
@@ -132,19 +129,18 @@ def _simulate_history(drive, gain: float, minutes: float, drives: int, variation
         if not coarse:
             feed(est, hist, rng)
         scale.feed(hist, rng)
-        for est_cues in cues.values():
-            if j:
-                est_cues.new_drive()
-            feed_cues(est_cues, hist)
+        if j:
+            cues.new_drive()
+        feed_cues(cues, hist)
     return {"gain": None if coarse else (est.info, est.info_c), "scale": (scale.k, scale.var),
-            "cues": {how: c.nuisance() for how, c in cues.items()}}
+            "cues": cues.nuisance()}
 
 
-def _cue_estimator(steering_ratio: float, car_mean: bool = False):
+def _cue_estimator(steering_ratio: float):
     from prml2_edge.runtime.cue_offset import CueOffset, CueOffsetConfig
     from prml2_edge.runtime.localizer import LocalizerConfig
 
-    cfg = LocalizerConfig(cue_offset_car_mean=car_mean)
+    cfg = LocalizerConfig()
     return CueOffset(cfg.cal_yaw_offset_prior_std_radps, steering_ratio, CueOffsetConfig.from_localizer(cfg))
 
 

@@ -28,8 +28,8 @@ the drive, so the calibration file keeps them (:meth:`CueOffset.nuisance`) and t
 (:meth:`CueOffset.restore`): in a minute of driving at one speed ``b`` does not separate from them, and a cold start
 has only their priors. The gyro's offset starts each drive from its prior; it moves between drives. What a drive
 hands on is its own estimate (the next drive's prior is it widened by ``restore_std_floor``, so the last drive
-dominates), or with ``car_mean`` the car's mean over its drives (:meth:`CueOffset.car_mean`: each drive one draw
-about the mean with the floor's spread).
+dominates). A car's mean over its drives and a release of the kept offsets at the drive's first stop were tried on
+validation and removed (docs/ablation.md).
 """
 
 from __future__ import annotations
@@ -59,8 +59,10 @@ def steering_offset(deg: float) -> float:
 
 
 # one-sigma floor of restored cue offsets: they move between drives (the accelerometer with temperature, tyre
-# pressure, the column's play), so a restored estimate is a strong prior, not a certainty
-RESTORE_STD_FLOOR = (0.03, 0.001 / NOMINAL_TRACK_M, steering_offset(0.1))
+# pressure, the column's play), so a restored estimate is a strong prior, not a certainty. a_y and steering at
+# sqrt(2) x a drive's spread about its car (0.03 m/s^2, 0.1 deg): the kept offsets are the last drive's, which
+# differs from this one by two draws. Chosen on validation (docs/ablation.md; 0.03 / 0.1 before)
+RESTORE_STD_FLOOR = (0.042, 0.001 / NOMINAL_TRACK_M, steering_offset(0.14))
 
 
 def checked_nuisance(values, cov) -> tuple[np.ndarray, np.ndarray]:
@@ -94,10 +96,6 @@ class CueOffsetConfig:
     systematic_std_radps: float = 0.0
     # the least uncertainty a restored offset keeps, one sigma, per cue (c, k, d): what can change between drives
     restore_std_floor: tuple[float, float, float] = RESTORE_STD_FLOOR
-    # what a drive hands the next (:meth:`CueOffset.nuisance`): False, its own offsets (the next drive's prior is
-    # them widened by the floor, so the last drive dominates); True, the car's mean over its drives, each drive
-    # one draw about it with the floor's spread (a two-level model: the mean sharpens with every drive)
-    car_mean: bool = False
 
     @classmethod
     def from_localizer(cls, config) -> CueOffsetConfig:
@@ -105,8 +103,7 @@ class CueOffsetConfig:
         the cues tell, its a_y and steering restore floors); the rest default."""
         return cls(systematic_std_radps=float(config.cue_offset_floor_radps),
                    restore_std_floor=(float(config.cue_ay_restore_floor_mps2), RESTORE_STD_FLOOR[1],
-                                      steering_offset(float(config.cue_steer_restore_floor_deg))),
-                   car_mean=bool(config.cue_offset_car_mean))
+                                      steering_offset(float(config.cue_steer_restore_floor_deg))))
 
 
 class CueOffset:
@@ -123,10 +120,6 @@ class CueOffset:
         self._prior = np.diag(np.square((float(b_prior_std_radps),) + tuple(self.config.prior_std)))
         self._R = np.diag(np.square(self.config.block_std_radps))
         self._start = (np.zeros(self.DIM), self._prior.copy())  # where :meth:`reset` begins (:meth:`restore`)
-        # the car's mean offsets (c, k, d) before this drive and their covariance (car_mean): cold, the prior less
-        # the drive's spread about the mean
-        floor2 = np.square(self.config.restore_std_floor)
-        self._car = (np.zeros(3), np.diag(np.maximum(np.diag(self._prior)[1:] - floor2, 1e-3 * floor2)))
         self.restored = False
         self.reset()
 
@@ -136,7 +129,6 @@ class CueOffset:
         self._sums = np.zeros(5)  # gyro − a_y/v, gyro − rear, gyro − steering, 1/v, v
         self._n = 0
         self.blocks = 0
-        self.released = False  # (release)
         self._nis_sum = np.zeros(3)  # per cue: innovation squared over its predicted variance, summed over blocks
         self.restart_export()  # (b, var) at the last export
 
@@ -146,44 +138,19 @@ class CueOffset:
 
     def nuisance(self) -> tuple[np.ndarray, np.ndarray]:
         """The cues' own offsets ``(c, k, d)`` (:data:`NUISANCE_NAMES`) and their covariance (3, 3): what the
-        calibration file keeps for the next drive (``config.car_mean``: the car's mean, see :meth:`car_mean`)."""
-        if self.config.car_mean:
-            return self.car_mean()
+        calibration file keeps for the next drive."""
         return self.theta[1:].copy(), self.P[1:, 1:].copy()
-
-    def car_mean(self) -> tuple[np.ndarray, np.ndarray]:
-        """The car's mean offsets after this drive: the drive's offsets are the mean plus a deviation of the
-        restore floor's spread, so what the drive taught of its own reaches the mean through the smoother gain
-        ``G = P_m (P_m + F)^-1`` (``P_m`` the mean's covariance before the drive, ``F`` the floor's)."""
-        m, Pm = self._car
-        prior = Pm + np.diag(np.square(self.config.restore_std_floor))
-        G = np.linalg.solve(prior, Pm).T
-        mean = m + G @ (self.theta[1:] - m)
-        cov = Pm - G @ (prior - self.P[1:, 1:]) @ G.T
-        return mean, 0.5 * (cov + cov.T)
 
     def restore(self, values, cov) -> None:
         """Start from the cues' offsets an earlier drive learned (:meth:`nuisance`), their covariance floored at
         ``config.restore_std_floor`` (default :data:`RESTORE_STD_FLOOR`); ``b`` starts from its prior. Raises
         ValueError on a wrong shape, a non-finite value or a covariance that is not positive."""
         values, cov = checked_nuisance(values, cov)
-        self._car = (values.copy(), cov.copy())
         P = self._prior.copy()
         P[1:, 1:] = cov + np.diag(np.square(self.config.restore_std_floor))
         self._start = (np.concatenate([[0.0], values]), P)
         self.restored = True
         self.reset()
-
-    def release(self) -> None:
-        """The cues' own offsets loosened to their priors' uncertainty (their estimates kept as the mean), once per
-        drive (:meth:`reset` arms it again): a stop has told the gyro's offset, so the drive's blocks teach the cues'
-        offsets against it."""
-        if self.released:
-            return
-        prior = np.diag(self._prior)[1:]
-        self.P[0, 1:] = self.P[1:, 0] = 0.0
-        self.P[1:, 1:] = np.diag(np.maximum(np.diag(self.P)[1:], prior))
-        self.released = True
 
     def new_drive(self) -> None:
         """Between two drives of one car: what was learned of the cues' offsets stays, ``b`` back to its prior."""
@@ -248,7 +215,7 @@ class CueOffset:
         """For the run's summary: the blocks used, the offset the cues tell with its sigma [deg/s] and the NIS (None
         before the first block: the summary is written as strict JSON, which has no NaN)."""
         b, std = self.offset
-        return {"blocks": self.blocks, "restored": self.restored, "released": self.released,
+        return {"blocks": self.blocks, "restored": self.restored,
                 "yaw_rate_offset_dps": math.degrees(b), "yaw_rate_offset_std_dps": math.degrees(std),
                 "nis": [round(float(x), 3) for x in self.nis] if self.blocks else None}
 

@@ -452,8 +452,6 @@ class PoseFilter(GnssFusion):
         status = self.ekf.update_standstill(cfg.standstill_std_mps ** 2,  # type: ignore[union-attr]
                                             cfg.standstill_yaw_std_radps ** 2)
         self.n_standstill_updates += int(status is StepStatus.SUCCESS)
-        if status is StepStatus.SUCCESS and self.cue_offset is not None and cfg.cue_release_on_stop:
-            self.cue_offset.release()  # the stop tells the gyro's offset: the drive learns the cues' own afresh
         return status is StepStatus.SUCCESS
 
     # ---- GNSS: runtime/filter_gnss.py (GnssFusion) ---------------------------------------------------

@@ -149,21 +149,15 @@ class LocalizerConfig:
     cue_offset_floor_radps: float = 0.0
     # ... the steering's offset restored with at least this uncertainty [deg of steering-wheel angle], one sigma: its
     # error follows the drive's mean yaw rate (wheelbase, understeer, lag), not a constant. 0.3 and 1 tried on
-    # validation: van_fwd's dry_val loss does not move, snow_val's deployment a little worse (docs/ablation.md)
-    cue_steer_restore_floor_deg: float = 0.1
+    # validation: van_fwd's dry_val loss does not move, snow_val's deployment a little worse. 0.14 (sqrt(2) x a
+    # drive's spread about its car: the kept offsets are the last drive's) with a_y's 0.042: dry_val better beyond
+    # the interval, no split worse (docs/ablation.md); 0.1 before
+    cue_steer_restore_floor_deg: float = 0.14
     # ... the lateral accelerometer's offset restored with at least this uncertainty [m/s^2], one sigma (its prior is
     # 0.3). 0.12 and 0.3 tried on validation: the van's dry_val windows 3.74 -> 3.08 m, but val's real-car drives
-    # +5.7 m worse: the kept a_y offset is most of what the kept cues give them (docs/ablation.md)
-    cue_ay_restore_floor_mps2: float = 0.03
-    # ... and what a drive hands the next: the car's mean over its drives (each drive one draw about it with the
-    # restore floors' spread) instead of the drive's own offsets, which the last drive dominates
-    # (runtime/cue_offset.py). On validation not better (val's real-car drives +1.3 m [-0.5, +3.3]; docs/ablation.md)
-    cue_offset_car_mean: bool = False
-    # ... and loosened to their priors (the estimates kept as the mean) at the drive's first stop: the stop tells the
-    # gyro's offset, against which the drive's own blocks learn the cues' offsets, and the kept ones' per-drive error
-    # no longer buys anything (runtime/cue_offset.py: CueOffset.release). On validation it is the cold cues on the
-    # stopped drives and loses snow_val's deployment windows (+0.76 m [+0.15, +1.59]; docs/ablation.md)
-    cue_release_on_stop: bool = False
+    # +5.7 m worse: the kept a_y offset is most of what the kept cues give them (docs/ablation.md). 0.042 with the
+    # steering's 0.14 chosen on validation; 0.03 before
+    cue_ay_restore_floor_mps2: float = 0.042
 
     def __post_init__(self) -> None:
         if self.stride < 1:

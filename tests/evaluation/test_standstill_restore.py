@@ -93,19 +93,3 @@ def test_an_unknown_restore_is_refused():
     loc = StreamingLocalizer(_model(), LocalizerConfig())
     with pytest.raises(ValueError, match="standstill restore must be one of"):
         restore_standstill_calibration(loc, StandstillBias(n_samples=100), how="garage")
-
-
-def test_a_stop_releases_the_kept_cue_offsets_once_when_asked():
-    """``cue_release_on_stop``: the runtime's first standstill update loosens the cues' kept offsets to their priors
-    (their values stay); off (the default) a stop leaves them as restored."""
-    onboard = _parked(L + 200, 0.3, 0.15, 0.01)
-    kept = (np.array([0.1, 0.001, 0.0005]), np.diag([0.01, 1e-4, 1e-4]) ** 2)
-    for release in (False, True):
-        loc = StreamingLocalizer(_model(), LocalizerConfig(cue_release_on_stop=release))
-        assert loc.restore_cue_offsets(*kept)
-        cues = loc.filter.cue_offset
-        loc.run_arrays(onboard, np.zeros(EkfState.DIM), start_index=L - 1)
-        assert loc.filter.n_standstill_updates > 0 and cues.released is release
-        np.testing.assert_allclose(cues.theta[1:], kept[0])
-        std = np.sqrt(np.diag(cues.P)[1:])
-        assert np.all(std >= np.array(cues.config.prior_std) * (1 - 1e-9)) if release else np.all(std < 0.05)

@@ -107,28 +107,6 @@ def test_the_a_y_and_steering_restore_floors_are_settings_of_the_runtime() -> No
         LocalizerConfig(cue_steer_restore_floor_deg=float("nan"))
 
 
-def test_the_car_mean_averages_the_drives_where_a_drives_own_hand_on_follows_the_last() -> None:
-    """Each drive's a_y offset one draw about the car's (0.2 m/s^2, spread ~ the restore floor): handing on the
-    drive's own estimate, the next drive starts near the last draw; the car's mean (``car_mean``) averages them."""
-    from prml2_edge.runtime.cue_offset import CueOffsetConfig
-
-    draws = [0.2 + x for x in (0.05, -0.04, 0.03, -0.05, 0.04, -0.03)]
-    own, mean = CueOffset(math.radians(0.5), RATIO), CueOffset(math.radians(0.5), RATIO,
-                                                               CueOffsetConfig(car_mean=True))
-    for j, c in enumerate(draws):
-        for est in (own, mean):
-            if j:
-                est.new_drive()
-            feed(est, rows(3 * 60 * 50, math.radians(0.1 * (-1) ** j), c, 0.002, 0.0005, seed=j))
-    (c_own, *_), _ = own.nuisance()
-    (c_mean, *_), cov = mean.nuisance()
-    assert c_own == pytest.approx(draws[-1], abs=0.015)  # the last draw, 0.03 off the car's
-    assert c_mean == pytest.approx(0.2, abs=0.012)
-    assert RESTORE_STD_FLOOR[0] / 4 < math.sqrt(cov[0, 0]) < RESTORE_STD_FLOOR[0] / 2  # six draws' mean
-    mean.new_drive()  # the next drive's prior: the mean widened by one draw's spread
-    assert math.sqrt(mean.P[1, 1]) == pytest.approx(math.hypot(math.sqrt(cov[0, 0]), RESTORE_STD_FLOOR[0]))
-
-
 def test_turning_slow_or_missing_rows_teach_nothing() -> None:
     b = math.radians(0.4)
     for values, valid in ((rows(3000, b, 0, 0, 0, a_y=2.0), None),  # cornering: understeer, slip
@@ -238,14 +216,8 @@ def test_a_cars_history_teaches_the_file_the_cues_own_offsets() -> None:
                            sensor_errors={"lat_offset_mps2": 0.2, "steer_offset_rad": steer,
                                           "wheel_radius_error": (0.0, 0.0, -0.003, 0.003)})
     ratio = get_car("compact_fwd").params.steering_ratio
-    evidence = cue_evidence(drive, minutes=8.0, drives=2)
-    for how in ("drive", "car_mean"):  # the drive's own hand-on and the car's mean
-        values, cov = evidence[how]
-        assert values[0] == pytest.approx(0.2, abs=0.06)
-        assert values[1] == pytest.approx(0.006 / NOMINAL_TRACK_M, rel=0.1)
-        assert values[2] == pytest.approx(steer / (ratio * NOMINAL_WHEELBASE_M), rel=0.1)
-        assert how != "drive" or np.all(np.sqrt(np.diag(cov)) < [0.05, 0.0003, 0.0003])
-    # the car's mean: no tighter than two drives' spread about it allows, tighter than one drive's hand-on
-    floor = np.array(RESTORE_STD_FLOOR)
-    own, mean = np.sqrt(np.diag(evidence["drive"][1])), np.sqrt(np.diag(evidence["car_mean"][1]))
-    assert np.all(mean > floor / 2) and np.all(mean < np.hypot(own, floor))
+    values, cov = cue_evidence(drive, minutes=8.0, drives=2)
+    assert values[0] == pytest.approx(0.2, abs=0.06)
+    assert values[1] == pytest.approx(0.006 / NOMINAL_TRACK_M, rel=0.1)
+    assert values[2] == pytest.approx(steer / (ratio * NOMINAL_WHEELBASE_M), rel=0.1)
+    assert np.all(np.sqrt(np.diag(cov)) < [0.05, 0.0003, 0.0003])
