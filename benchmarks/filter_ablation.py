@@ -103,6 +103,10 @@ OSD_GAIN = "OSD, gyro gain from the unit's earlier drives"
 # the standstill's offset as the runtime's own stop leaves it (evaluation/standstill_restore.py), not with the file's
 # floor: measured on validation, a wash (docs/ablation.md), so the benchmark keeps the file's floor
 STOOD = "the default, the stop's offset as the runtime's standstill update knows it"
+# the kept cue offsets restored at one drive's spread about its car, the default before 2026-12-07 (now sqrt(2) x:
+# the kept offsets are the last drive's, two draws from this one's)
+FLOORS_1X = (("cue_ay_restore_floor_mps2", 0.03), ("cue_steer_restore_floor_deg", 0.1))
+FLOORS_1X_ROW = "the default with the kept cue offsets floored at one drive's spread (before)"
 
 
 NO_COARSE = ("coarse_yaw_resolution_radps", float("inf"))  # the coarse-gyro inflation off
@@ -163,7 +167,8 @@ def variants(model: str) -> dict[str, ModelSpec]:
             COURSE_AS_YAW_ROW: replace(cal, filter=(COURSE_AS_YAW,)),
             FINE_UNTIL_ROW: replace(cal, filter=(FINE_UNTIL,)),
             CONFIGURED_RES_ROW: replace(cal, filter=(CONFIGURED_RES,)),
-            STOOD: replace(cal, standstill_restore="runtime")}
+            STOOD: replace(cal, standstill_restore="runtime"),
+            FLOORS_1X_ROW: replace(cal, filter=FLOORS_1X)}
 
 
 PROTOCOLS = {"paper": 0.0, "deployment": DEPLOYMENT_PREROLL_S}
@@ -291,8 +296,8 @@ def summarise(results: dict[str, list], osd: list, extra: tuple[str, ...] = ()) 
                      "per_car": per_car(res, osd)}
         if OSD_GAIN in results and name != OSD_GAIN and name in (DEFAULT, CUE, GAIN, HELD):  # vs OSD, same gain
             out[name]["paired_vs_osd_gain"] = paired_comparison(results[OSD_GAIN], res)
-        if (name in extra or name in (CUE, STOOD)) and DEFAULT in results:  # CUE: the step the default took last;
-            # STOOD: the benchmark's other way to restore a stop
+        if (name in extra or name in (CUE, STOOD, FLOORS_1X_ROW)) and DEFAULT in results:  # CUE, FLOORS_1X_ROW:
+            # the steps the default took last; STOOD: the benchmark's other way to restore a stop
             out[name]["paired_vs_default"] = paired_comparison(results[DEFAULT], res)
     return out
 
