@@ -61,8 +61,11 @@ def steering_offset(deg: float) -> float:
 # one-sigma floor of restored cue offsets: they move between drives (the accelerometer with temperature, tyre
 # pressure, the column's play), so a restored estimate is a strong prior, not a certainty. a_y and steering at
 # sqrt(2) x a drive's spread about its car (0.03 m/s^2, 0.1 deg): the kept offsets are the last drive's, which
-# differs from this one by two draws. Chosen on validation (docs/ablation.md; 0.03 / 0.1 before)
-RESTORE_STD_FLOOR = (0.042, 0.001 / NOMINAL_TRACK_M, steering_offset(0.14))
+# differs from this one by two draws. Chosen on validation (docs/ablation.md; 0.03 / 0.1 before). The runtime's
+# LocalizerConfig.cue_ay_restore_floor_mps2 / cue_steer_restore_floor_deg default to these
+AY_RESTORE_FLOOR_MPS2 = 0.042
+STEER_RESTORE_FLOOR_DEG = 0.14
+RESTORE_STD_FLOOR = (AY_RESTORE_FLOOR_MPS2, 0.001 / NOMINAL_TRACK_M, steering_offset(STEER_RESTORE_FLOOR_DEG))
 
 
 def checked_nuisance(values, cov) -> tuple[np.ndarray, np.ndarray]:
