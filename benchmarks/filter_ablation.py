@@ -196,9 +196,10 @@ def resimulated(manifest: dict, name: str) -> InMemorySplits:
 
 def variant_arg(text: str) -> tuple[str, tuple[tuple[str, float], ...], dict]:
     """``--variant "LABEL:FIELD=VALUE[,FIELD=VALUE]"``: the runtime's default with numeric LocalizerConfig fields
-    changed (:func:`~prml2_edge.evaluation.protocol.filter_override`), and ``standstill_restore=runtime|file`` (how
-    the benchmark restores the stop's offset, :mod:`~prml2_edge.evaluation.standstill_restore`), as an extra row (a
-    diagnosis replayed on the same recorded outputs)."""
+    changed (:func:`~prml2_edge.evaluation.protocol.filter_override`), ``standstill_restore=runtime|file`` (how
+    the benchmark restores the stop's offset, :mod:`~prml2_edge.evaluation.standstill_restore`) and
+    ``cue_drive_so_far=0|1`` (whether the cue estimator has run over the drive before the window), as an extra row
+    (a diagnosis replayed on the same recorded outputs)."""
     label, sep, body = text.rpartition(":")
     if not sep or not label:
         raise argparse.ArgumentTypeError(f"{text!r}: want 'LABEL:FIELD=NUMBER[,FIELD=NUMBER]'")
@@ -210,6 +211,10 @@ def variant_arg(text: str) -> tuple[str, tuple[tuple[str, float], ...], dict]:
                 if value not in STANDSTILL_RESTORES:
                     raise ValueError(f"{item!r}: standstill_restore is one of {', '.join(STANDSTILL_RESTORES)}")
                 spec[name] = value
+            elif name == "cue_drive_so_far":
+                if value not in ("0", "1"):
+                    raise ValueError(f"{item!r}: cue_drive_so_far is 0 or 1")
+                spec[name] = value == "1"
             else:
                 pairs.append(filter_override(item))
     except ValueError as e:

@@ -63,6 +63,9 @@ class ModelSpec:
     standstill_restore: str = "file"
     # with calibration: start from the wheel scale the car's earlier drives taught (the task's wheel_scale)
     wheel_scale_history: bool = True
+    # with calibration: the cue estimator has run over the drive so far (the task's ``before`` rows and its history
+    # rows), as the runtime's has by the time the window starts; False: it starts at the window
+    cue_drive_so_far: bool = False
     filter: tuple[tuple[str, object], ...] = ()  # LocalizerConfig fields to override, (name, value) pairs
 
     def __post_init__(self) -> None:
@@ -110,6 +113,9 @@ class WindowTask:
     wheel_scale: tuple[float, float] | None = None
     # the cues' own offsets the same history taught the cue estimator: (values (3,), cov (3, 3)); None: none
     cue_offsets: tuple[np.ndarray, np.ndarray] | None = None
+    # the drive's CAN signals before ``onboard`` (its rows from the drive's start; with ``onboard``'s history rows,
+    # the drive so far); None: not kept
+    before: np.ndarray | None = None
 
     @property
     def key(self) -> str:
@@ -210,7 +216,8 @@ def split_tasks(dataset, split: str, window_s: float = DR_WINDOW_S, window_len: 
                                     drive.onboard[start - pre - hist : start + steps],
                                     drive.t_s[sl], drive.z_gt[sl], drive.pose_gt[sl], mu, bias, pre,
                                     drive.pose_gt[ps] if pre else None, drive.z_gt[ps] if pre else None,
-                                    evidence, str(drive.meta.get("vehicle", "")), scale, cues))
+                                    evidence, str(drive.meta.get("vehicle", "")), scale, cues,
+                                    drive.onboard[: start - pre - hist]))
     return tasks
 
 
@@ -333,6 +340,9 @@ def localizer_for(spec: ModelSpec, task: WindowTask, stride: int = 1, model=None
             loc.filter.yaw_gain.restore(*task.yaw_gain)
         if task.cue_offsets is not None:
             loc.restore_cue_offsets(*task.cue_offsets)
+    cues = loc.filter.cue_offset
+    if spec.cue_drive_so_far and cues is not None and task.before is not None:
+        cues.rows(np.concatenate([task.before, task.onboard[:task.history]]), loc.filter.yaw_gain_factor)
     if not spec.guard:
         loc.a_max_mps2 = NO_GUARD_A_MAX_MPS2  # ablation: no friction-circle bound (speed/yaw-rate bounds stay)
     return loc, model

@@ -131,7 +131,7 @@ def _simulate_history(drive, gain: float, minutes: float, drives: int, variation
         scale.feed(hist, rng)
         if j:
             cues.new_drive()
-        feed_cues(cues, hist)
+        cues.rows(hist.onboard)
     return {"gain": None if coarse else (est.info, est.info_c), "scale": (scale.k, scale.var),
             "cues": cues.nuisance()}
 
@@ -153,14 +153,6 @@ def _car_cue_errors(meta: dict, rng: np.random.Generator) -> dict:
         if errors.get(name) is not None:
             out[name] = float(errors[name]) + float(rng.normal(0.0, spread))
     return out
-
-
-def feed_cues(cues, drive) -> None:
-    """Run the runtime's cue estimator over ``drive``'s CAN signals, every row (a NaN is a missing signal)."""
-    onboard = drive.onboard
-    finite = np.isfinite(onboard)
-    for values, valid in zip(onboard, finite, strict=True):
-        cues.row(values, valid)
 
 
 class WheelScaleHistory:

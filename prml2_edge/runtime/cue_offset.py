@@ -185,6 +185,15 @@ class CueOffset:
         self._update(means)
         return True
 
+    def rows(self, onboard: np.ndarray, yaw_gain: float = 1.0) -> int:
+        """:meth:`row` over every row of ``onboard`` (N, 9) [SI, canonical order; NaN: a missing signal]: a drive's
+        signals so far, as the runtime would have seen them. Returns the blocks it closed."""
+        onboard = np.asarray(onboard, dtype=np.float64)
+        closed = 0
+        for values, valid in zip(onboard, np.isfinite(onboard), strict=True):
+            closed += self.row(values, valid, yaw_gain)
+        return closed
+
     def _straight_speed(self, values: np.ndarray, valid: np.ndarray) -> float | None:
         cfg = self.config
         if not all(valid[i] for i in _NEEDED):

@@ -184,7 +184,8 @@ class PoseFilter(GnssFusion):
         if self.calibrated and self.calibration0 is not None:
             self.ekf.set_calibration(*self.calibration0)
         if self.cue_offset is not None:
-            self.cue_offset.restart_export()  # the new EKF has heard nothing of it yet
+            self.cue_offset.restart_export()  # the new EKF has heard nothing of it yet: all it knows goes over now
+            self._export_cues()
         self._last_abs_t = t_s
         self.gnss_check.reset()
 
@@ -432,9 +433,13 @@ class PoseFilter(GnssFusion):
     def _cue_offset_row(self, values: np.ndarray, valid: np.ndarray) -> None:
         """This row to the cues' offset estimate; what it learned, when it closes a block, to the offset state."""
         if self.cue_offset.row(values, valid, self.yaw_gain_factor):  # type: ignore[union-attr]
-            measured = self.cue_offset.export()  # type: ignore[union-attr]
-            if measured is not None:
-                self.ekf.update_yaw_offset(*measured)  # type: ignore[union-attr]
+            self._export_cues()
+
+    def _export_cues(self) -> None:
+        """What the cue estimator learned of the gyro's offset since its last export, to the EKF's offset state."""
+        measured = self.cue_offset.export()  # type: ignore[union-attr]
+        if measured is not None:
+            self.ekf.update_yaw_offset(*measured)  # type: ignore[union-attr]
 
     def _still(self, values: np.ndarray, valid: np.ndarray, t_s: float) -> bool:
         """Standstill: every valid wheel speed 0 (and the speedometer) for ``standstill_hold_s``."""

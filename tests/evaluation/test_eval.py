@@ -374,3 +374,32 @@ def test_a_fleet_cars_drive_runs_with_its_driven_axle_and_steering_ratio():
     rear_cue = ModelSpec("m", "onnx", "m.onnx", filter=(("driven_axle", "front"),))
     assert _localizer_config(rear_cue, SimpleNamespace(mu=1.0, preroll=0, vehicle="rwd_sedan"), 1).driven_axle \
         == "front"
+
+
+def test_a_window_mid_drive_starts_from_the_cue_estimator_the_drive_so_far_taught(tmp_path):
+    """The runtime's cue estimator has run over the drive before a window starts: each task keeps the drive's rows
+    before its own, and a spec with ``cue_drive_so_far`` replays them (with the task's history rows) into the
+    estimator, as a runtime that had run since the drive's start would hold it; without it the window starts cold."""
+    from dataclasses import replace
+
+    from prml2_edge.data.simulate import simulate_drive
+    from prml2_edge.evaluation.protocol import InMemorySplits, localizer_for
+    from prml2_edge.runtime.cue_offset import CueOffset
+
+    drive = simulate_drive(2.5, 1.0, 4242, "mixed", name="so_far", vehicle="compact_fwd", standstill=False)
+    model = make_kinematic_model(tmp_path / "k.onnx")
+    tasks = split_tasks(InMemorySplits({"test": [drive]}), "test", preroll_s=10.0)
+    assert len(tasks) == 2
+    for task in tasks:  # the rows before the task's own, then its own: the drive as it was
+        whole = np.concatenate([task.before, task.onboard])
+        assert np.array_equal(whole, drive.onboard[: len(whole)])
+    spec = ModelSpec("kin", "onnx", str(model), calibration=True)
+    late = tasks[1]
+    cold, _ = localizer_for(spec, late)
+    warm, _ = localizer_for(replace(spec, cue_drive_so_far=True), late)
+    ref = CueOffset(cold.config.cal_yaw_offset_prior_std_radps, cold.config.steering_ratio,
+                    cold.filter.cue_offset.config)
+    ref.rows(drive.onboard[: late.start - late.preroll], warm.filter.yaw_gain_factor)
+    assert cold.filter.cue_offset.blocks == 0
+    assert warm.filter.cue_offset.blocks == ref.blocks > 10
+    assert np.array_equal(warm.filter.cue_offset.theta, ref.theta)

@@ -204,6 +204,29 @@ def test_the_filter_learns_a_fine_gyros_offset_while_driving_only_from_the_cues(
         assert "cue_offset" not in loc.filter.summary()["calibration"]
 
 
+@pytest.mark.parametrize("so_far", [True, False])
+def test_a_filter_started_mid_drive_hears_at_once_what_the_cues_learned_of_the_drive_so_far(tmp_path, offset_drive,
+                                                                                           so_far):
+    """The EKF (re)started two minutes into the drive: the offset the cue estimator learned over those minutes is
+    in its offset state from the first row, not only after the next straight block. Without the drive so far the
+    start knows nothing of it."""
+    from runtime_models import make_kinematic_model
+
+    from prml2_edge.runtime.inference import OnnxModel
+    from prml2_edge.runtime.localizer import LocalizerConfig, StreamingLocalizer
+
+    loc = StreamingLocalizer(OnnxModel(make_kinematic_model(tmp_path / "k.onnx")), LocalizerConfig())
+    split, start = 2 * 60 * 50, schema.WINDOW_LEN - 1
+    if so_far:
+        assert loc.filter.cue_offset.rows(offset_drive.onboard[:split - start]) > 10
+    rest = offset_drive.onboard[split - start:]
+    x0 = np.zeros(EkfState.DIM)
+    x0[EkfState.VEL.start] = rest[start, _SIG["wheel_speed_rl_mps"].index]
+    traj = loc.run_arrays(rest, x0, start_index=start, gnss={})
+    first = math.degrees(traj.cal[start, 0])
+    assert abs(first - 0.4) < 0.15 if so_far else abs(first) < 1e-9
+
+
 def test_a_cars_history_teaches_the_file_the_cues_own_offsets() -> None:
     """The simulated history keeps the car's accelerometer and steering offsets (each drive a little off them) and
     its tyres: the cue estimator run over it, each drive's gyro offset its own, finds the car's offsets."""
