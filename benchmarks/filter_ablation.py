@@ -103,10 +103,9 @@ OSD_GAIN = "OSD, gyro gain from the unit's earlier drives"
 # the standstill's offset as the runtime's own stop leaves it (evaluation/standstill_restore.py), not with the file's
 # floor: measured on validation, a wash (docs/ablation.md), so the benchmark keeps the file's floor
 STOOD = "the default, the stop's offset as the runtime's standstill update knows it"
-# the kept cue offsets restored at one drive's spread about its car, the default before 2026-12-07 (now sqrt(2) x:
-# the kept offsets are the last drive's, two draws from this one's)
-FLOORS_1X = (("cue_ay_restore_floor_mps2", 0.03), ("cue_steer_restore_floor_deg", 0.1))
-FLOORS_1X_ROW = "the default with the kept cue offsets floored at one drive's spread (before)"
+# the cue estimator started at the window (the benchmark's way before 2026-12-07): a runtime running since the
+# drive's start has fed it the drive's minutes before the window (ModelSpec.cue_drive_so_far, docs/ablation.md)
+WINDOW_START_ROW = "the default, the cue estimator from the window's start (before)"
 
 
 NO_COARSE = ("coarse_yaw_resolution_radps", float("inf"))  # the coarse-gyro inflation off
@@ -168,7 +167,7 @@ def variants(model: str) -> dict[str, ModelSpec]:
             FINE_UNTIL_ROW: replace(cal, filter=(FINE_UNTIL,)),
             CONFIGURED_RES_ROW: replace(cal, filter=(CONFIGURED_RES,)),
             STOOD: replace(cal, standstill_restore="runtime"),
-            FLOORS_1X_ROW: replace(cal, filter=FLOORS_1X)}
+            WINDOW_START_ROW: replace(cal, cue_drive_so_far=False)}
 
 
 PROTOCOLS = {"paper": 0.0, "deployment": DEPLOYMENT_PREROLL_S}
@@ -301,8 +300,8 @@ def summarise(results: dict[str, list], osd: list, extra: tuple[str, ...] = ()) 
                      "per_car": per_car(res, osd)}
         if OSD_GAIN in results and name != OSD_GAIN and name in (DEFAULT, CUE, GAIN, HELD):  # vs OSD, same gain
             out[name]["paired_vs_osd_gain"] = paired_comparison(results[OSD_GAIN], res)
-        if (name in extra or name in (CUE, STOOD, FLOORS_1X_ROW)) and DEFAULT in results:  # CUE, FLOORS_1X_ROW:
-            # the steps the default took last; STOOD: the benchmark's other way to restore a stop
+        if (name in extra or name in (CUE, STOOD, WINDOW_START_ROW)) and DEFAULT in results:  # CUE: the step the
+            # default took last; STOOD, WINDOW_START_ROW: the benchmark's other ways to start a window
             out[name]["paired_vs_default"] = paired_comparison(results[DEFAULT], res)
     return out
 

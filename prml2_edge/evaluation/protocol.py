@@ -64,8 +64,8 @@ class ModelSpec:
     # with calibration: start from the wheel scale the car's earlier drives taught (the task's wheel_scale)
     wheel_scale_history: bool = True
     # with calibration: the cue estimator has run over the drive so far (the task's ``before`` rows and its history
-    # rows), as the runtime's has by the time the window starts; False: it starts at the window
-    cue_drive_so_far: bool = False
+    # rows), as the runtime's has by the time the window starts; False (before 2026-12-07): it starts at the window
+    cue_drive_so_far: bool = True
     filter: tuple[tuple[str, object], ...] = ()  # LocalizerConfig fields to override, (name, value) pairs
 
     def __post_init__(self) -> None:

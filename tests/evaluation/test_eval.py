@@ -378,8 +378,8 @@ def test_a_fleet_cars_drive_runs_with_its_driven_axle_and_steering_ratio():
 
 def test_a_window_mid_drive_starts_from_the_cue_estimator_the_drive_so_far_taught(tmp_path):
     """The runtime's cue estimator has run over the drive before a window starts: each task keeps the drive's rows
-    before its own, and a spec with ``cue_drive_so_far`` replays them (with the task's history rows) into the
-    estimator, as a runtime that had run since the drive's start would hold it; without it the window starts cold."""
+    before its own, and a spec replays them (with the task's history rows) into the estimator, as a runtime that had
+    run since the drive's start would hold it; with ``cue_drive_so_far`` off (before) the window starts cold."""
     from dataclasses import replace
 
     from prml2_edge.data.simulate import simulate_drive
@@ -395,8 +395,8 @@ def test_a_window_mid_drive_starts_from_the_cue_estimator_the_drive_so_far_taugh
         assert np.array_equal(whole, drive.onboard[: len(whole)])
     spec = ModelSpec("kin", "onnx", str(model), calibration=True)
     late = tasks[1]
-    cold, _ = localizer_for(spec, late)
-    warm, _ = localizer_for(replace(spec, cue_drive_so_far=True), late)
+    warm, _ = localizer_for(spec, late)  # the benchmark's default
+    cold, _ = localizer_for(replace(spec, cue_drive_so_far=False), late)
     ref = CueOffset(cold.config.cal_yaw_offset_prior_std_radps, cold.config.steering_ratio,
                     cold.filter.cue_offset.config)
     ref.rows(drive.onboard[: late.start - late.preroll], warm.filter.yaw_gain_factor)
