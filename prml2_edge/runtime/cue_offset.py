@@ -97,10 +97,6 @@ class CueOffsetConfig:
     # steering geometry against the nominal, the history's offsets); the exports never add up to more information
     # than 1 / floor^2. 0: none
     systematic_std_radps: float = 0.0
-    # ... and under it the gyro's rounding, this times its step (:meth:`CueOffset.row`'s ``gyro_step_radps``): a
-    # coarse gyro reads the same step on every straight whatever its offset within it, so more blocks do not tell
-    # more. 0: none
-    step_floor_gain: float = 0.0
     # the least uncertainty a restored offset keeps, one sigma, per cue (c, k, d): what can change between drives
     restore_std_floor: tuple[float, float, float] = RESTORE_STD_FLOOR
 
@@ -109,7 +105,6 @@ class CueOffsetConfig:
         """The settings a :class:`~prml2_edge.runtime.localizer_config.LocalizerConfig` gives (its floor under what
         the cues tell, its a_y and steering restore floors); the rest default."""
         return cls(systematic_std_radps=float(config.cue_offset_floor_radps),
-                   step_floor_gain=float(config.cue_offset_step_floor_gain),
                    restore_std_floor=(float(config.cue_ay_restore_floor_mps2), RESTORE_STD_FLOOR[1],
                                       steering_offset(float(config.cue_steer_restore_floor_deg))))
 
@@ -128,7 +123,6 @@ class CueOffset:
         self._prior = np.diag(np.square((float(b_prior_std_radps),) + tuple(self.config.prior_std)))
         self._R = np.diag(np.square(self.config.block_std_radps))
         self._start = (np.zeros(self.DIM), self._prior.copy())  # where :meth:`reset` begins (:meth:`restore`)
-        self.gyro_step_radps = 0.0  # the CAN yaw rate's resolution as last told (row)
         self.restored = False
         self.reset()
 
@@ -143,7 +137,7 @@ class CueOffset:
 
     def restart_export(self) -> None:
         """The next :meth:`export` hands over everything learned (to a filter that starts again from its prior)."""
-        self._exported = (0.0, float(self._prior[0, 0]) + self._floor_var())
+        self._exported = (0.0, float(self._prior[0, 0]) + self.config.systematic_std_radps ** 2)
 
     def nuisance(self) -> tuple[np.ndarray, np.ndarray]:
         """The cues' own offsets ``(c, k, d)`` (:data:`NUISANCE_NAMES`) and their covariance (3, 3): what the
@@ -170,17 +164,9 @@ class CueOffset:
         """``(b, its standard deviation)`` [rad/s]."""
         return float(self.theta[0]), math.sqrt(max(float(self.P[0, 0]), 0.0))
 
-    def _floor_var(self) -> float:
-        """The floor under what the exports tell of ``b`` [rad^2/s^2]: the systematic part and the gyro's rounding."""
-        return self.config.systematic_std_radps ** 2 + (self.config.step_floor_gain * self.gyro_step_radps) ** 2
-
-    def row(self, values: np.ndarray, valid: np.ndarray, yaw_gain: float = 1.0,
-            gyro_step_radps: float | None = None) -> bool:
+    def row(self, values: np.ndarray, valid: np.ndarray, yaw_gain: float = 1.0) -> bool:
         """One step's CAN signals; True when it closed a block and updated the estimate. A row that does not
-        qualify (slow, turning, a signal missing) ends the block it would have joined. ``gyro_step_radps``: the CAN
-        yaw rate's resolution as known now (None: unchanged)."""
-        if gyro_step_radps is not None:
-            self.gyro_step_radps = float(gyro_step_radps)
+        qualify (slow, turning, a signal missing) ends the block it would have joined."""
         v = self._straight_speed(values, valid)
         if v is None:
             self._sums[:] = 0.0
@@ -199,13 +185,13 @@ class CueOffset:
         self._update(means)
         return True
 
-    def rows(self, onboard: np.ndarray, yaw_gain: float = 1.0, gyro_step_radps: float | None = None) -> int:
+    def rows(self, onboard: np.ndarray, yaw_gain: float = 1.0) -> int:
         """:meth:`row` over every row of ``onboard`` (N, 9) [SI, canonical order; NaN: a missing signal]: a drive's
         signals so far, as the runtime would have seen them. Returns the blocks it closed."""
         onboard = np.asarray(onboard, dtype=np.float64)
         closed = 0
         for values, valid in zip(onboard, np.isfinite(onboard), strict=True):
-            closed += self.row(values, valid, yaw_gain, gyro_step_radps)
+            closed += self.row(values, valid, yaw_gain)
         return closed
 
     def _straight_speed(self, values: np.ndarray, valid: np.ndarray) -> float | None:
@@ -249,7 +235,7 @@ class CueOffset:
         """What was learned of ``b`` since the last export as one measurement ``(value, variance)`` [rad/s,
         rad^2/s^2]: the marginal's information gain and the value that carries it; None while the gain is under
         ``min_gain`` of the prior's information."""
-        b, var = float(self.theta[0]), float(self.P[0, 0]) + self._floor_var()
+        b, var = float(self.theta[0]), float(self.P[0, 0]) + self.config.systematic_std_radps ** 2
         b0, var0 = self._exported
         gain = 1.0 / var - 1.0 / var0
         if gain < self.config.min_gain / float(self._prior[0, 0]):

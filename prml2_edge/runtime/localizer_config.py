@@ -160,9 +160,6 @@ class LocalizerConfig:
     # +5.7 m worse: the kept a_y offset is most of what the kept cues give them (docs/ablation.md). 0.042 with the
     # steering's 0.14 chosen on validation; 0.03 before
     cue_ay_restore_floor_mps2: float = AY_RESTORE_FLOOR_MPS2
-    # ... and what the cues tell of a coarse gyro's offset never more certain than this times its measured step, one
-    # sigma (it reads the same step on every straight whatever its offset within it). 0: no such floor
-    cue_offset_step_floor_gain: float = 0.0
 
     def __post_init__(self) -> None:
         if self.stride < 1:
@@ -179,7 +176,7 @@ class LocalizerConfig:
         if not (math.isfinite(self.cue_offset_floor_radps) and self.cue_offset_floor_radps >= 0.0):
             raise ValueError(f"cue_offset_floor_radps must be >= 0 (0: no floor), got {self.cue_offset_floor_radps}")
         for name in ("cal_yaw_offset_psd", "cal_wheel_scale_psd", "cue_steer_restore_floor_deg",
-                     "cue_ay_restore_floor_mps2", "cue_offset_step_floor_gain"):
+                     "cue_ay_restore_floor_mps2"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value}")

@@ -10,7 +10,6 @@ import pytest
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import Ekf
 from prml2_edge.runtime.cue_offset import NOMINAL_TRACK_M, NOMINAL_WHEELBASE_M, RESTORE_STD_FLOOR, CueOffset
-from prml2_edge.runtime.localizer_config import LocalizerConfig
 from prml2_edge.schema import EkfState
 
 _SIG = schema.SIGNAL_BY_NAME
@@ -153,34 +152,6 @@ def test_a_floor_caps_what_the_exports_tell_however_long_the_cues_agree() -> Non
     assert est.offset[1] < 0.5 * floor
     assert math.sqrt(p) > 0.95 * floor and x == pytest.approx(est.offset[0], abs=math.radians(0.02))
     assert math.sqrt(p) == pytest.approx(math.hypot(est.offset[1], floor), rel=0.05)  # the estimate's and the floor's
-
-
-def test_a_coarse_gyro_tells_its_offset_no_better_than_its_rounding() -> None:
-    """A 1.28 deg/s gyro 0.2 deg/s off reads 0 on every straight: without a floor the blocks make b near 0 ever
-    surer (5 sigma wrong in 3 min); ``step_floor_gain`` caps what the exports tell at that share of the step, while a
-    fine gyro's step leaves them as they were."""
-    from prml2_edge.runtime.cue_offset import CueOffsetConfig
-
-    b, c, k, d, step = math.radians(0.2), 0.1, 0.002, 0.0005, math.radians(1.28)
-    values = rows(3 * 60 * 50, b, c, k, d, seed=5)
-    yaw = _SIG["yaw_rate_radps"].index
-    values[:, yaw] = np.round(values[:, yaw] / step) * step
-    assert np.all(values[:, yaw] == 0.0)
-    told = {}
-    for gain, gyro_step in ((0.0, step), (0.29, step), (0.29, math.radians(0.01))):
-        est = CueOffset(math.radians(0.5), RATIO, CueOffsetConfig(step_floor_gain=gain))
-        est.restore(np.array([c, k, d]), np.eye(3) * 1e-12)  # the car's cue offsets known
-        x, p = 0.0, math.radians(0.5) ** 2
-        for row in values:
-            if est.row(row, np.ones(values.shape[1], dtype=bool), 1.0, gyro_step) and (e := est.export()):
-                g = p / (p + e[1])
-                x, p = x + g * (e[0] - x), (1 - g) * p
-        told[(gain, gyro_step)] = (x - b) / math.sqrt(p), math.sqrt(p)
-    assert abs(told[(0.0, step)][0]) > 4.0  # overconfident: the rounding taken for the offset
-    assert abs(told[(0.29, step)][0]) < 1.0 and told[(0.29, step)][1] > math.radians(0.3)
-    assert told[(0.29, math.radians(0.01))] == pytest.approx(told[(0.0, step)], rel=0.05)
-    with pytest.raises(ValueError, match="cue_offset_step_floor_gain must be a finite number >= 0"):
-        LocalizerConfig(cue_offset_step_floor_gain=-1.0)
 
 
 def test_the_ekf_takes_the_offset_as_a_measurement_of_its_state() -> None:
