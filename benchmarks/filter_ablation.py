@@ -83,9 +83,9 @@ from prml2_edge.evaluation.protocol import (
     run_all,
     run_window,
     split_tasks,
-    tune_osd,
 )
 from prml2_edge.evaluation.standstill_restore import STANDSTILL_RESTORES
+from prml2_edge.evaluation.tuning import tune_osd
 from prml2_edge.evaluation.unit_history import HISTORY_MINUTES
 from prml2_edge.progress import Progress
 from prml2_edge.runtime.yaw_gain import YawGainEstimator

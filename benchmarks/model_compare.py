@@ -31,7 +31,8 @@ from filter_ablation import DRY_VAL, OSD, PROTOCOLS, RESIMULATED, SNOW_VAL, by_c
 from prml2_edge.bench.results import announce, finish
 from prml2_edge.data.datasets import load_dataset
 from prml2_edge.evaluation.metrics import coverage, coverage_text, dr_summary, paired_comparison, paired_text
-from prml2_edge.evaluation.protocol import ModelSpec, run_all, split_tasks, tune_osd
+from prml2_edge.evaluation.protocol import ModelSpec, run_all, split_tasks
+from prml2_edge.evaluation.tuning import tune_osd
 from prml2_edge.evaluation.unit_history import HISTORY_MINUTES
 from prml2_edge.progress import Progress
 

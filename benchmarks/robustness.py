@@ -53,16 +53,8 @@ from prml2_edge.bench.results import finish
 from prml2_edge.data.datasets import resolve_recipe
 from prml2_edge.data.simulate import simulate_drive
 from prml2_edge.evaluation.metrics import dr_summary, paired_comparison
-from prml2_edge.evaluation.protocol import (
-    OSD_Q_SCALES,
-    InMemorySplits,
-    ModelSpec,
-    Tuning,
-    filter_override,
-    run_all,
-    split_tasks,
-    tune_osd,
-)
+from prml2_edge.evaluation.protocol import InMemorySplits, ModelSpec, filter_override, run_all, split_tasks
+from prml2_edge.evaluation.tuning import OSD_Q_SCALES, Tuning, tune_osd
 from prml2_edge.evaluation.unit_history import HISTORY_MINUTES
 from prml2_edge.progress import Progress
 

@@ -15,16 +15,13 @@ from prml2_edge.evaluation.metrics import dr_summary, paired_comparison, z_rmse
 from prml2_edge.evaluation.protocol import (
     DEPLOYMENT_PREROLL_S,
     DR_WINDOW_S,
-    OSD_Q_SCALES,
     ModelSpec,
-    Tuning,
     WindowResult,
     WindowTask,
     run_all,
     split_tasks,
-    tune_constant_variance,
-    tune_osd,
 )
+from prml2_edge.evaluation.tuning import OSD_Q_SCALES, Tuning, tune_constant_variance, tune_osd
 from prml2_edge.evaluation.unit_history import HISTORY_MINUTES
 from prml2_edge.progress import Progress
 

@@ -176,7 +176,7 @@ def test_z_rmse_ignores_missing_components(tiny):
 
 
 def test_noise_grid_is_extended_until_its_minimum_is_inside():
-    from prml2_edge.evaluation.protocol import _extend_grid
+    from prml2_edge.evaluation.tuning import _extend_grid
 
     calls = []
 
