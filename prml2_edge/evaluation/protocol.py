@@ -310,18 +310,6 @@ def _localizer_config(spec: ModelSpec, task: WindowTask, stride: int):
                            **kwargs)
 
 
-def gyro_step(onboard: np.ndarray, unknown: float) -> float:
-    """The CAN yaw rate's resolution [rad/s] over ``onboard`` as the runtime's filter measures it (the 10th
-    percentile of its first 200 steps between distinct readings, the smallest step before that); ``unknown`` (the
-    configured one) while it never changed."""
-    yaw = onboard[:, schema.SIGNAL_BY_NAME["yaw_rate_radps"].index]
-    steps = np.abs(np.diff(yaw[np.isfinite(yaw)]))
-    steps = steps[steps > 0.0]
-    if not steps.size:
-        return float(unknown)
-    return float(np.percentile(steps[:200], 10)) if steps.size >= 200 else float(min(steps.min(), unknown))
-
-
 def start_state(task: WindowTask) -> np.ndarray:
     """The filter's start state: the true pose and z at the first row it runs (the pre-roll's, when there is one)."""
     pose, z = (task.pre_pose_gt[0], task.pre_z_gt[0]) if task.preroll else (task.pose_gt[0], task.z_gt[0])
@@ -352,8 +340,7 @@ def localizer_for(spec: ModelSpec, task: WindowTask, stride: int = 1, model=None
             loc.restore_cue_offsets(*task.cue_offsets)
     cues = loc.filter.cue_offset
     if spec.cue_drive_so_far and cues is not None and task.before is not None:
-        so_far = np.concatenate([task.before, task.onboard[:task.history]])
-        cues.rows(so_far, loc.filter.yaw_gain_factor, gyro_step(so_far, loc.filter.yaw_resolution_radps))
+        cues.rows(np.concatenate([task.before, task.onboard[:task.history]]), loc.filter.yaw_gain_factor)
     if not spec.guard:
         loc.a_max_mps2 = NO_GUARD_A_MAX_MPS2  # ablation: no friction-circle bound (speed/yaw-rate bounds stay)
     return loc, model

@@ -23,13 +23,6 @@ the offsets' slopes ``k`` and ``d`` [rad/m] are learned as they are. :meth:`CueO
 learned of ``b`` since the last export to the pose filter as one measurement (the information it gained, so that
 nothing is counted twice), where it meets the CAN yaw-rate offset state.
 
-A coarse gyro (the ReV-StED car's 1.28 deg/s) reads 0 on a straight whatever its offset within half a step, so its
-block means measure the rounding of the road's gentle curves, not ``b``, and the blocks grow surer without growing
-righter (docs/ablation.md). With ``step_events_min_radps`` at or under its resolution, its blocks give only the cues'
-differences (which the gyro cancels out of, so ``c, k, d`` still learn), and ``b`` comes from where the reading
-steps: there its true rate plus ``b`` crossed the midpoint between the two readings, and the cues' mean over the few
-rows around it tells the true rate (:meth:`CueOffset._step_event`).
-
 The cues' own offsets belong to the car (the accelerometer's mounting, the tyres, the steering's alignment), not to
 the drive, so the calibration file keeps them (:meth:`CueOffset.nuisance`) and the next drive starts from them
 (:meth:`CueOffset.restore`): in a minute of driving at one speed ``b`` does not separate from them, and a cold start
@@ -42,7 +35,6 @@ validation and removed (docs/ablation.md).
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,7 +49,6 @@ _RL, _RR = _SIG["wheel_speed_rl_mps"].index, _SIG["wheel_speed_rr_mps"].index
 _NEEDED = (_YAW, _AY, _STEER, _RL, _RR)
 NOMINAL_TRACK_M = 1.55
 NOMINAL_WHEELBASE_M = 2.7
-_GYRO_FREE = np.array([[1.0, -1.0, 0.0], [1.0, 0.0, -1.0]])  # the cues' differences: a_y/v − wheels, a_y/v − steering
 NUISANCE_NAMES = ("lat_accel_offset_mps2", "rear_radius_diff_radpm", "steering_offset_radpm")
 
 
@@ -102,10 +93,6 @@ class CueOffsetConfig:
     # 10 min; c: the accelerometer's with temperature; k, d: tyres warming, the column's play)
     psd: tuple[float, float, float, float] = (2.2e-11, 1e-8, 1e-12, 1e-12)
     min_gain: float = 0.5  # an export needs this much information on b, in units of its prior's
-    # a gyro whose resolution is at least this [rad/s] tells its offset only where its reading steps (module
-    # docstring, "A coarse gyro"); inf: never, every gyro's block means are taken as they are
-    step_events_min_radps: float = math.inf
-    event_half_rows: int = 5  # the cues are averaged over this many rows either side of a step
     # a floor under what the cues can tell of b [rad/s], one sigma: their errors that do not average out (a van's
     # steering geometry against the nominal, the history's offsets); the exports never add up to more information
     # than 1 / floor^2. 0: none
@@ -118,7 +105,6 @@ class CueOffsetConfig:
         """The settings a :class:`~prml2_edge.runtime.localizer_config.LocalizerConfig` gives (its floor under what
         the cues tell, its a_y and steering restore floors); the rest default."""
         return cls(systematic_std_radps=float(config.cue_offset_floor_radps),
-                   step_events_min_radps=float(config.cue_offset_step_events_min_radps),
                    restore_std_floor=(float(config.cue_ay_restore_floor_mps2), RESTORE_STD_FLOOR[1],
                                       steering_offset(float(config.cue_steer_restore_floor_deg))))
 
@@ -146,11 +132,7 @@ class CueOffset:
         self._sums = np.zeros(5)  # gyro − a_y/v, gyro − rear, gyro − steering, 1/v, v
         self._n = 0
         self.blocks = 0
-        self.events = 0  # a coarse gyro's steps that measured b (_step_event)
-        self._recent: deque = deque(maxlen=2 * self.config.event_half_rows + 1)
-        self._since_event = self._block_rows
-        self._nis_sum = np.zeros(3)  # per cue: innovation squared over its predicted variance, summed over updates
-        self._nis_n = 0  # ... that saw the gyro
+        self._nis_sum = np.zeros(3)  # per cue: innovation squared over its predicted variance, summed over blocks
         self.restart_export()  # (b, var) at the last export
 
     def restart_export(self) -> None:
@@ -182,60 +164,34 @@ class CueOffset:
         """``(b, its standard deviation)`` [rad/s]."""
         return float(self.theta[0]), math.sqrt(max(float(self.P[0, 0]), 0.0))
 
-    def row(self, values: np.ndarray, valid: np.ndarray, yaw_gain: float = 1.0,
-            step_radps: float | None = None) -> bool:
-        """One step's CAN signals (``step_radps``: the gyro's measured resolution, None while unknown); True when
-        it updated the estimate (closed a block, or met a coarse gyro's step). A row that does not qualify (slow,
-        turning, a signal missing) ends the block it would have joined."""
+    def row(self, values: np.ndarray, valid: np.ndarray, yaw_gain: float = 1.0) -> bool:
+        """One step's CAN signals; True when it closed a block and updated the estimate. A row that does not
+        qualify (slow, turning, a signal missing) ends the block it would have joined."""
         v = self._straight_speed(values, valid)
         if v is None:
             self._sums[:] = 0.0
             self._n = 0
-            self._recent.clear()
             return False
         gyro = float(values[_YAW]) * yaw_gain
         steer = v * math.tan(float(values[_STEER]) / self.steering_ratio) / NOMINAL_WHEELBASE_M
         rear = (float(values[_RR]) - float(values[_RL])) / NOMINAL_TRACK_M
-        cues = (float(values[_AY]) / v, rear, steer)
-        self._sums += (gyro - cues[0], gyro - cues[1], gyro - cues[2], 1.0 / v, v)
+        self._sums += (gyro - float(values[_AY]) / v, gyro - rear, gyro - steer, 1.0 / v, v)
         self._n += 1
-        coarse = step_radps is not None and step_radps >= self.config.step_events_min_radps
-        stepped = coarse and self._step_event((gyro, *cues, 1.0 / v, v), float(step_radps) * yaw_gain)
         if self._n < self._block_rows:
-            return stepped
+            return False
         means = self._sums / self._n
         self._sums[:] = 0.0
         self._n = 0
-        self._update(means, with_gyro=not coarse)
-        self.blocks += 1
+        self._update(means)
         return True
 
-    def _step_event(self, row: tuple, step: float) -> bool:
-        """A coarse gyro's reading stepped between the two middle rows of the last ``2 event_half_rows + 1``: its
-        true rate plus ``b`` crossed the midpoint there, a measurement of ``b`` against the cues' mean over those
-        rows (at most one per ``block_s``, since the crossings of one slow drift share its error)."""
-        self._recent.append(row)
-        self._since_event += 1
-        h = self.config.event_half_rows
-        if len(self._recent) < 2 * h + 1 or self._since_event < self._block_rows:
-            return False
-        before, after = self._recent[h - 1][0], self._recent[h][0]
-        if before == after or abs(after - before) > 1.5 * step:
-            return False
-        m = np.mean(np.asarray(self._recent), axis=0)
-        mid = 0.5 * (before + after)
-        self._since_event = 0
-        self.events += 1
-        self._update(np.array([mid - m[1], mid - m[2], mid - m[3], m[4], m[5]]))
-        return True
-
-    def rows(self, onboard: np.ndarray, yaw_gain: float = 1.0, step_radps: float | None = None) -> int:
+    def rows(self, onboard: np.ndarray, yaw_gain: float = 1.0) -> int:
         """:meth:`row` over every row of ``onboard`` (N, 9) [SI, canonical order; NaN: a missing signal]: a drive's
-        signals so far, as the runtime would have seen them. Returns the updates it made."""
+        signals so far, as the runtime would have seen them. Returns the blocks it closed."""
         onboard = np.asarray(onboard, dtype=np.float64)
         closed = 0
         for values, valid in zip(onboard, np.isfinite(onboard), strict=True):
-            closed += self.row(values, valid, yaw_gain, step_radps)
+            closed += self.row(values, valid, yaw_gain)
         return closed
 
     def _straight_speed(self, values: np.ndarray, valid: np.ndarray) -> float | None:
@@ -247,38 +203,33 @@ class CueOffset:
             return None
         return v
 
-    def _update(self, means: np.ndarray, with_gyro: bool = True) -> None:
-        """One block's (or step's) means of gyro − cue per cue with mean(1/v), mean(v); ``with_gyro`` False: only
-        their differences, which the gyro (and its rounding) cancel out of."""
+    def _update(self, means: np.ndarray) -> None:
         dt = self._block_rows * self.dt_s
         self.P = self.P + np.diag(self.config.psd) * dt
         inv_v, v = means[3], means[4]
         H = np.array([[1.0, -inv_v, 0.0, 0.0], [1.0, 0.0, -v, 0.0], [1.0, 0.0, 0.0, -v]])
-        y, R = means[:3] - H @ self.theta, self._R
-        if not with_gyro:
-            H, y, R = _GYRO_FREE @ H, _GYRO_FREE @ y, _GYRO_FREE @ R @ _GYRO_FREE.T
-        S = H @ self.P @ H.T + R
+        y = means[:3] - H @ self.theta
+        S = H @ self.P @ H.T + self._R
         K = np.linalg.solve(S, H @ self.P).T
-        if with_gyro:
-            self._nis_sum += y * y / np.diag(S)
-            self._nis_n += 1
+        self._nis_sum += y * y / np.diag(S)
         self.theta = self.theta + K @ y
         I_KH = np.eye(self.DIM) - K @ H
-        self.P = I_KH @ self.P @ I_KH.T + K @ R @ K.T
+        self.P = I_KH @ self.P @ I_KH.T + K @ self._R @ K.T
+        self.blocks += 1
 
     @property
     def nis(self) -> np.ndarray:
         """Per cue (a_y / v, rear wheels, steering): the mean normalised innovation squared over the blocks so far
         (about 1 where ``block_std_radps`` states the blocks' scatter rightly; NaN before the first block)."""
-        return self._nis_sum / self._nis_n if self._nis_n else np.full(3, np.nan)
+        return self._nis_sum / self.blocks if self.blocks else np.full(3, np.nan)
 
     def summary(self) -> dict:
         """For the run's summary: the blocks used, the offset the cues tell with its sigma [deg/s] and the NIS (None
         before the first block: the summary is written as strict JSON, which has no NaN)."""
         b, std = self.offset
-        return {"blocks": self.blocks, "step_events": self.events, "restored": self.restored,
+        return {"blocks": self.blocks, "restored": self.restored,
                 "yaw_rate_offset_dps": math.degrees(b), "yaw_rate_offset_std_dps": math.degrees(std),
-                "nis": [round(float(x), 3) for x in self.nis] if self._nis_n else None}
+                "nis": [round(float(x), 3) for x in self.nis] if self.blocks else None}
 
     def export(self) -> tuple[float, float] | None:
         """What was learned of ``b`` since the last export as one measurement ``(value, variance)`` [rad/s,

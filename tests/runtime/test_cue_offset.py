@@ -154,47 +154,6 @@ def test_a_floor_caps_what_the_exports_tell_however_long_the_cues_agree() -> Non
     assert math.sqrt(p) == pytest.approx(math.hypot(est.offset[1], floor), rel=0.05)  # the estimate's and the floor's
 
 
-def weaving(n: int, b: float, step: float, amp_dps: float = 0.3, speed: float = 15.0, seed: int = 3):
-    """``n`` rows of a gentle weave (yaw rate ``amp_dps`` over 20 s, the speed swinging as in :func:`rows`) on a gyro
-    rounded to ``step`` [rad/s] with an offset ``b``: the cues (a_y, wheels, steering) follow the true yaw rate
-    without offsets of their own."""
-    rng = np.random.default_rng(seed)
-    t = np.arange(n) * schema.DT_S
-    w = math.radians(amp_dps) * np.sin(2 * math.pi * t / 20.0)
-    out = rows(n, 0.0, 0.0, 0.0, 0.0, seed=seed, speed=speed)
-    v = out[:, _SIG["wheel_speed_rl_mps"].index].copy()
-    gyro = w + b + rng.normal(0.0, math.radians(0.06), n)
-    out[:, _SIG["yaw_rate_radps"].index] = np.round(gyro / step) * step
-    out[:, _SIG["lat_accel_mps2"].index] += v * w
-    out[:, _SIG["wheel_speed_rl_mps"].index] = v - w * NOMINAL_TRACK_M / 2
-    out[:, _SIG["wheel_speed_rr_mps"].index] = v + w * NOMINAL_TRACK_M / 2
-    out[:, _SIG["steering_wheel_angle_rad"].index] = RATIO * np.arctan(w * NOMINAL_WHEELBASE_M / v)
-    return out
-
-
-def test_a_coarse_gyro_tells_its_offset_where_its_reading_steps_not_in_its_blocks() -> None:
-    """A 1.28 deg/s gyro 0.4 deg/s off reads 0 on most of a gentle weave: its block means say the offset is smaller
-    and grow surer; where the reading steps, its true rate plus the offset crosses half a step, which the cues
-    measure. Fine gyros keep their blocks (the setting's threshold)."""
-    from prml2_edge.runtime.cue_offset import CueOffsetConfig
-
-    step, b = math.radians(1.28), math.radians(-0.4)
-    values = weaving(5 * 60 * 50, b, step)
-    valid = np.ones(values.shape[1], dtype=bool)
-    blocks = CueOffset(math.radians(0.5), RATIO)
-    events = CueOffset(math.radians(0.5), RATIO, CueOffsetConfig(step_events_min_radps=math.radians(1.0)))
-    for row in values:
-        blocks.row(row, valid, 1.0, step)
-        events.row(row, valid, 1.0, step)
-    (wrong, wrong_std), (got, std) = blocks.offset, events.offset
-    assert blocks.events == 0 and abs(wrong - b) > 4 * wrong_std  # confidently wrong
-    assert events.events >= 20 and events.blocks > 0
-    assert abs(got - b) < math.radians(0.1) and abs(got - b) < 2 * std
-    fine = CueOffset(math.radians(0.5), RATIO, CueOffsetConfig(step_events_min_radps=math.radians(1.0)))
-    fine.rows(weaving(60 * 50, b, math.radians(0.01)), 1.0, math.radians(0.01))
-    assert fine.events == 0 and fine.summary()["step_events"] == 0 and fine.blocks == 30
-
-
 def test_the_ekf_takes_the_offset_as_a_measurement_of_its_state() -> None:
     ekf = Ekf(np.zeros(EkfState.DIM), np.eye(EkfState.DIM), calibration=True)
     before = ekf.cal_cov[0, 0]
