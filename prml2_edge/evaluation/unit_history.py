@@ -43,6 +43,7 @@ from prml2_edge.evaluation.consumer_gnss import (
     GNSS_POS_STD_M,
     GNSS_RATE_HZ,
 )
+from prml2_edge.runtime.coarse_offset import measured_step
 from prml2_edge.runtime.yaw_gain import YawGainEstimator
 
 HISTORY_MINUTES = 20.0
@@ -52,6 +53,7 @@ GAIN_VARIATION = 0.002  # per-drive spread of a sensor's gain around its own (te
 CUE_VARIATION = (0.03, 0.1 * schema.DEG_TO_RAD)
 DRIVE_DRAW = True  # the drive one draw about its car's gain and cue offsets (module docstring); a benchmark's switch
 _CACHE: dict[tuple, dict] = {}
+_YAW = schema.SIGNAL_BY_NAME["yaw_rate_radps"].index
 
 
 def gain_evidence(drive, minutes: float = HISTORY_MINUTES, drives: int = HISTORY_DRIVES,
@@ -114,7 +116,7 @@ def _simulate_history(drive, gain: float, minutes: float, drives: int, variation
     est = YawGainEstimator(math.radians(GNSS_HEADING_STD_DEG))
     settings = CARS[str(meta["vehicle"])].filter_settings()  # (_history: a car of the fleet)
     scale = WheelScaleHistory(**settings)
-    cues = _cue_estimator(settings["steering_ratio"])
+    cues, configured = _cue_estimator(settings["steering_ratio"])
     cue_rng = np.random.default_rng([zlib.crc32(drive.name.encode()), 0x43554553])  # "CUES": the gain's draws stay
     # the car's gain and cue offsets: the drive's, or (DRIVE_DRAW) the drive's plus one per-drive variation
     car_rng = np.random.default_rng([zlib.crc32(drive.name.encode()), 0x43415253])  # "CARS"
@@ -131,7 +133,7 @@ def _simulate_history(drive, gain: float, minutes: float, drives: int, variation
         scale.feed(hist, rng)
         if j:
             cues.new_drive()
-        cues.rows(hist.onboard)
+        cues.rows(hist.onboard, 1.0, measured_step(hist.onboard[:, _YAW], configured))  # as the runtime
     return {"gain": None if coarse else (est.info, est.info_c), "scale": (scale.k, scale.var),
             "cues": cues.nuisance()}
 
@@ -141,7 +143,8 @@ def _cue_estimator(steering_ratio: float):
     from prml2_edge.runtime.localizer import LocalizerConfig
 
     cfg = LocalizerConfig()
-    return CueOffset(cfg.cal_yaw_offset_prior_std_radps, steering_ratio, CueOffsetConfig.from_localizer(cfg))
+    return (CueOffset(cfg.cal_yaw_offset_prior_std_radps, steering_ratio, CueOffsetConfig.from_localizer(cfg)),
+            cfg.yaw_cue_resolution_radps)
 
 
 def _car_cue_errors(meta: dict, rng: np.random.Generator) -> dict:

@@ -23,6 +23,12 @@ the offsets' slopes ``k`` and ``d`` [rad/m] are learned as they are. :meth:`CueO
 learned of ``b`` since the last export to the pose filter as one measurement (the information it gained, so that
 nothing is counted twice), where it meets the CAN yaw-rate offset state.
 
+A coarse gyro (the ReV-StED car's 1.28 deg/s) reads 0 on a straight whatever its offset within half a step, so its
+block means measure the rounding of the road's gentle curves, not ``b``, and the blocks grow surer without growing
+righter (docs/ablation.md). With ``coarse_min_step_radps`` at or under its resolution, its blocks give only the cues'
+differences (which the gyro cancels out of, so ``c, k, d`` still learn), and ``b`` comes from the intervals its
+readings allow, a likelihood over a grid (:mod:`~prml2_edge.runtime.coarse_offset`).
+
 The cues' own offsets belong to the car (the accelerometer's mounting, the tyres, the steering's alignment), not to
 the drive, so the calibration file keeps them (:meth:`CueOffset.nuisance`) and the next drive starts from them
 (:meth:`CueOffset.restore`): in a minute of driving at one speed ``b`` does not separate from them, and a cold start
@@ -42,6 +48,7 @@ import numpy as np
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import checked_gaussian
 from prml2_edge.runtime.axle_speed import rear_speed
+from prml2_edge.runtime.coarse_offset import CoarseOffset
 
 _SIG = schema.SIGNAL_BY_NAME
 _YAW, _AY, _STEER = (_SIG[n].index for n in ("yaw_rate_radps", "lat_accel_mps2", "steering_wheel_angle_rad"))
@@ -49,6 +56,7 @@ _RL, _RR = _SIG["wheel_speed_rl_mps"].index, _SIG["wheel_speed_rr_mps"].index
 _NEEDED = (_YAW, _AY, _STEER, _RL, _RR)
 NOMINAL_TRACK_M = 1.55
 NOMINAL_WHEELBASE_M = 2.7
+_GYRO_FREE = np.array([[1.0, -1.0, 0.0], [1.0, 0.0, -1.0]])  # the cues' differences: a_y/v − wheels, a_y/v − steering
 NUISANCE_NAMES = ("lat_accel_offset_mps2", "rear_radius_diff_radpm", "steering_offset_radpm")
 
 
@@ -93,6 +101,9 @@ class CueOffsetConfig:
     # 10 min; c: the accelerometer's with temperature; k, d: tyres warming, the column's play)
     psd: tuple[float, float, float, float] = (2.2e-11, 1e-8, 1e-12, 1e-12)
     min_gain: float = 0.5  # an export needs this much information on b, in units of its prior's
+    # a gyro whose resolution is at least this [rad/s] tells its offset through the intervals its readings allow
+    # (module docstring, "A coarse gyro"); inf: never, every gyro's block means are taken as they are
+    coarse_min_step_radps: float = math.inf
     # a floor under what the cues can tell of b [rad/s], one sigma: their errors that do not average out (a van's
     # steering geometry against the nominal, the history's offsets); the exports never add up to more information
     # than 1 / floor^2. 0: none
@@ -105,6 +116,7 @@ class CueOffsetConfig:
         """The settings a :class:`~prml2_edge.runtime.localizer_config.LocalizerConfig` gives (its floor under what
         the cues tell, its a_y and steering restore floors); the rest default."""
         return cls(systematic_std_radps=float(config.cue_offset_floor_radps),
+                   coarse_min_step_radps=float(config.cue_offset_coarse_min_step_radps),
                    restore_std_floor=(float(config.cue_ay_restore_floor_mps2), RESTORE_STD_FLOOR[1],
                                       steering_offset(float(config.cue_steer_restore_floor_deg))))
 
@@ -123,6 +135,8 @@ class CueOffset:
         self._prior = np.diag(np.square((float(b_prior_std_radps),) + tuple(self.config.prior_std)))
         self._R = np.diag(np.square(self.config.block_std_radps))
         self._start = (np.zeros(self.DIM), self._prior.copy())  # where :meth:`reset` begins (:meth:`restore`)
+        self.coarse = CoarseOffset(float(b_prior_std_radps))
+        self._finest = math.inf  # the finest resolution the gyro has shown (a filter that starts again re-measures)
         self.restored = False
         self.reset()
 
@@ -132,7 +146,12 @@ class CueOffset:
         self._sums = np.zeros(5)  # gyro − a_y/v, gyro − rear, gyro − steering, 1/v, v
         self._n = 0
         self.blocks = 0
+        self.coarse.reset()
+        self._coarse_on = False  # the last row came with a coarse gyro's step: b is the grid's
+        self._pending: list[tuple[float, float, float]] = []  # the coarse gyro's straight rows: reading, a_y, v
+        self._step = 0.0
         self._nis_sum = np.zeros(3)  # per cue: innovation squared over its predicted variance, summed over blocks
+        self._nis_n = 0  # ... that saw the gyro
         self.restart_export()  # (b, var) at the last export
 
     def restart_export(self) -> None:
@@ -161,37 +180,60 @@ class CueOffset:
 
     @property
     def offset(self) -> tuple[float, float]:
-        """``(b, its standard deviation)`` [rad/s]."""
+        """``(b, its standard deviation)`` [rad/s]: a coarse gyro's from the grid, any other's from the filter."""
+        if self._coarse_on:
+            return self.coarse.offset
         return float(self.theta[0]), math.sqrt(max(float(self.P[0, 0]), 0.0))
 
-    def row(self, values: np.ndarray, valid: np.ndarray, yaw_gain: float = 1.0) -> bool:
-        """One step's CAN signals; True when it closed a block and updated the estimate. A row that does not
-        qualify (slow, turning, a signal missing) ends the block it would have joined."""
+    def row(self, values: np.ndarray, valid: np.ndarray, yaw_gain: float = 1.0,
+            step_radps: float | None = None) -> bool:
+        """One step's CAN signals (``step_radps``: the gyro's resolution as the filter knows it, None: unknown); True
+        when it updated the estimate (closed a block). A row that does not qualify (slow, turning, a signal missing)
+        ends the block it would have joined."""
+        if step_radps is not None:
+            self._finest = min(self._finest, float(step_radps))
+        self._coarse_on = math.isfinite(self._finest) and self._finest >= self.config.coarse_min_step_radps
         v = self._straight_speed(values, valid)
         if v is None:
             self._sums[:] = 0.0
             self._n = 0
-            return False
+            return self._flush_coarse() > 0
         gyro = float(values[_YAW]) * yaw_gain
         steer = v * math.tan(float(values[_STEER]) / self.steering_ratio) / NOMINAL_WHEELBASE_M
         rear = (float(values[_RR]) - float(values[_RL])) / NOMINAL_TRACK_M
         self._sums += (gyro - float(values[_AY]) / v, gyro - rear, gyro - steer, 1.0 / v, v)
         self._n += 1
+        if self._coarse_on:
+            self._pending.append((gyro, float(values[_AY]), v))
+            self._step = self._finest * yaw_gain
         if self._n < self._block_rows:
             return False
         means = self._sums / self._n
         self._sums[:] = 0.0
         self._n = 0
-        self._update(means)
+        self._update(means, with_gyro=not self._coarse_on)
+        self._flush_coarse()
         return True
 
-    def rows(self, onboard: np.ndarray, yaw_gain: float = 1.0) -> int:
+    def _flush_coarse(self) -> int:
+        """The coarse gyro's pending straight rows to the grid, their rate from ``a_y / v`` less its offset ``c``
+        as the filter knows it now; returns the runs of one reading it used."""
+        if not self._pending:
+            return 0
+        rows = np.asarray(self._pending)
+        self._pending = []
+        inv_v = 1.0 / rows[:, 2]
+        rate = (rows[:, 1] - self.theta[1]) * inv_v
+        return self.coarse.block(rows[:, 0], rate, self._step,
+                                 math.sqrt(max(float(self.P[1, 1]), 0.0)) * float(np.mean(inv_v)))
+
+    def rows(self, onboard: np.ndarray, yaw_gain: float = 1.0, step_radps: float | None = None) -> int:
         """:meth:`row` over every row of ``onboard`` (N, 9) [SI, canonical order; NaN: a missing signal]: a drive's
-        signals so far, as the runtime would have seen them. Returns the blocks it closed."""
+        signals so far, as the runtime would have seen them. Returns the updates it made."""
         onboard = np.asarray(onboard, dtype=np.float64)
         closed = 0
         for values, valid in zip(onboard, np.isfinite(onboard), strict=True):
-            closed += self.row(values, valid, yaw_gain)
+            closed += self.row(values, valid, yaw_gain, step_radps)
         return closed
 
     def _straight_speed(self, values: np.ndarray, valid: np.ndarray) -> float | None:
@@ -203,39 +245,46 @@ class CueOffset:
             return None
         return v
 
-    def _update(self, means: np.ndarray) -> None:
+    def _update(self, means: np.ndarray, with_gyro: bool = True) -> None:
+        """One block's means of gyro − cue per cue with mean(1/v), mean(v); ``with_gyro`` False: only the cues'
+        differences, which the gyro (and its rounding) cancel out of."""
         dt = self._block_rows * self.dt_s
         self.P = self.P + np.diag(self.config.psd) * dt
         inv_v, v = means[3], means[4]
         H = np.array([[1.0, -inv_v, 0.0, 0.0], [1.0, 0.0, -v, 0.0], [1.0, 0.0, 0.0, -v]])
-        y = means[:3] - H @ self.theta
-        S = H @ self.P @ H.T + self._R
+        y, R = means[:3] - H @ self.theta, self._R
+        if not with_gyro:
+            H, y, R = _GYRO_FREE @ H, _GYRO_FREE @ y, _GYRO_FREE @ R @ _GYRO_FREE.T
+        S = H @ self.P @ H.T + R
         K = np.linalg.solve(S, H @ self.P).T
-        self._nis_sum += y * y / np.diag(S)
+        if with_gyro:
+            self._nis_sum += y * y / np.diag(S)
+            self._nis_n += 1
         self.theta = self.theta + K @ y
         I_KH = np.eye(self.DIM) - K @ H
-        self.P = I_KH @ self.P @ I_KH.T + K @ self._R @ K.T
+        self.P = I_KH @ self.P @ I_KH.T + K @ R @ K.T
         self.blocks += 1
 
     @property
     def nis(self) -> np.ndarray:
         """Per cue (a_y / v, rear wheels, steering): the mean normalised innovation squared over the blocks so far
         (about 1 where ``block_std_radps`` states the blocks' scatter rightly; NaN before the first block)."""
-        return self._nis_sum / self.blocks if self.blocks else np.full(3, np.nan)
+        return self._nis_sum / self._nis_n if self._nis_n else np.full(3, np.nan)
 
     def summary(self) -> dict:
         """For the run's summary: the blocks used, the offset the cues tell with its sigma [deg/s] and the NIS (None
         before the first block: the summary is written as strict JSON, which has no NaN)."""
         b, std = self.offset
-        return {"blocks": self.blocks, "restored": self.restored,
+        return {"blocks": self.blocks, "coarse_runs": self.coarse.runs, "restored": self.restored,
                 "yaw_rate_offset_dps": math.degrees(b), "yaw_rate_offset_std_dps": math.degrees(std),
-                "nis": [round(float(x), 3) for x in self.nis] if self.blocks else None}
+                "nis": [round(float(x), 3) for x in self.nis] if self._nis_n else None}
 
     def export(self) -> tuple[float, float] | None:
         """What was learned of ``b`` since the last export as one measurement ``(value, variance)`` [rad/s,
         rad^2/s^2]: the marginal's information gain and the value that carries it; None while the gain is under
         ``min_gain`` of the prior's information."""
-        b, var = float(self.theta[0]), float(self.P[0, 0]) + self.config.systematic_std_radps ** 2
+        b, std = self.offset
+        var = std ** 2 + self.config.systematic_std_radps ** 2
         b0, var0 = self._exported
         gain = 1.0 / var - 1.0 / var0
         if gain < self.config.min_gain / float(self._prior[0, 0]):

@@ -432,7 +432,7 @@ class PoseFilter(GnssFusion):
 
     def _cue_offset_row(self, values: np.ndarray, valid: np.ndarray) -> None:
         """This row to the cues' offset estimate; what it learned, when it closes a block, to the offset state."""
-        if self.cue_offset.row(values, valid, self.yaw_gain_factor):  # type: ignore[union-attr]
+        if self.cue_offset.row(values, valid, self.yaw_gain_factor, self.yaw_resolution_radps):  # type: ignore
             self._export_cues()
 
     def _export_cues(self) -> None:

@@ -148,6 +148,10 @@ class LocalizerConfig:
     # ... and what the cues tell of the offset never more certain than this [rad/s], one sigma (their errors that do
     # not average out); 0: as certain as the blocks make it (CueOffsetConfig.systematic_std_radps)
     cue_offset_floor_radps: float = 0.0
+    # ... a gyro this coarse [rad/s] or coarser tells its offset through the intervals its readings allow (a grid
+    # likelihood, runtime/coarse_offset.py), its blocks only the cues' differences: on a straight it reads 0 whatever
+    # its offset within half a step; inf: every gyro's block means as they are
+    cue_offset_coarse_min_step_radps: float = math.inf
     # ... the steering's offset restored with at least this uncertainty [deg of steering-wheel angle], one sigma: its
     # error follows the drive's mean yaw rate (wheelbase, understeer, lag), not a constant. 0.3 and 1 tried on
     # validation: van_fwd's dry_val loss does not move, snow_val's deployment a little worse. 0.14 (sqrt(2) x a

@@ -154,6 +154,60 @@ def test_a_floor_caps_what_the_exports_tell_however_long_the_cues_agree() -> Non
     assert math.sqrt(p) == pytest.approx(math.hypot(est.offset[1], floor), rel=0.05)  # the estimate's and the floor's
 
 
+def weaving(n: int, b: float, step: float, amp_dps: float = 0.3, speed: float = 15.0, seed: int = 3):
+    """``n`` rows of a gentle weave (yaw rate ``amp_dps`` over 20 s, the speed swinging as in :func:`rows`) on a gyro
+    rounded to ``step`` [rad/s] with an offset ``b``: the cues (a_y, wheels, steering) follow the true yaw rate
+    without offsets of their own."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * schema.DT_S
+    w = math.radians(amp_dps) * np.sin(2 * math.pi * t / 20.0)
+    out = rows(n, 0.0, 0.0, 0.0, 0.0, seed=seed, speed=speed)
+    v = out[:, _SIG["wheel_speed_rl_mps"].index].copy()
+    gyro = w + b + rng.normal(0.0, math.radians(0.06), n)
+    out[:, _SIG["yaw_rate_radps"].index] = np.round(gyro / step) * step
+    out[:, _SIG["lat_accel_mps2"].index] += v * w
+    out[:, _SIG["wheel_speed_rl_mps"].index] = v - w * NOMINAL_TRACK_M / 2
+    out[:, _SIG["wheel_speed_rr_mps"].index] = v + w * NOMINAL_TRACK_M / 2
+    out[:, _SIG["steering_wheel_angle_rad"].index] = RATIO * np.arctan(w * NOMINAL_WHEELBASE_M / v)
+    return out
+
+
+@pytest.mark.parametrize("b_dps", [-0.4, 0.0, 0.3])
+def test_a_coarse_gyro_tells_its_offset_through_the_intervals_its_readings_allow(b_dps: float) -> None:
+    """A 1.28 deg/s gyro reads 0 on most of a gentle weave whatever its offset within half a step: its block means
+    are confidently wrong with an offset; the intervals its runs of one reading allow (the grid) say where it can be,
+    pinned where the rate plus the offset crosses half a step (−0.4), wide where it never does (0, +0.3: the weave's
+    0.3 deg/s only bound it). A fine gyro keeps its blocks (the setting's threshold)."""
+    from prml2_edge.runtime.cue_offset import CueOffsetConfig
+
+    step, b = math.radians(1.28), math.radians(b_dps)
+    values = weaving(5 * 60 * 50, b, step)
+    blocks = CueOffset(math.radians(0.5), RATIO)
+    grid = CueOffset(math.radians(0.5), RATIO, CueOffsetConfig(coarse_min_step_radps=math.radians(1.0)))
+    blocks.rows(values, 1.0, step)
+    grid.rows(values, 1.0, step)
+    (wrong, wrong_std), (got, std) = blocks.offset, grid.offset
+    assert grid.coarse.runs > 100 and grid.summary()["coarse_runs"] == grid.coarse.runs
+    assert abs(got - b) < 2.5 * std, (math.degrees(got), math.degrees(std))  # honest, whatever the offset
+    if b_dps == -0.4:  # the weave's rate plus the offset crosses half a step: the crossings pin it
+        assert abs(wrong - b) > 4 * wrong_std  # the blocks: surer, not righter
+        assert abs(got - b) < math.radians(0.05) and std < math.radians(0.1)
+    fine = CueOffset(math.radians(0.5), RATIO, CueOffsetConfig(coarse_min_step_radps=math.radians(1.0)))
+    fine.rows(weaving(60 * 50, b, math.radians(0.01)), 1.0, math.radians(0.01))
+    assert fine.coarse.runs == 0 and fine.blocks == 30 and fine.offset == (fine.theta[0], math.sqrt(fine.P[0, 0]))
+
+
+def test_the_replay_measures_the_gyros_step_as_the_filter_does() -> None:
+    from prml2_edge.runtime.coarse_offset import measured_step
+
+    step = math.radians(1.28)
+    few = np.where((np.arange(500) // 50) % 2 == 1, math.radians(0.5), 0.0)  # 9 steps of 0.5 deg/s
+    assert measured_step(few, step) == pytest.approx(math.radians(0.5))
+    assert measured_step(np.zeros(100), step) == step  # never changed: the configured one
+    many = np.round(np.random.default_rng(0).normal(0.0, 2 * step, 1000) / step) * step
+    assert measured_step(many, math.radians(5.0)) == pytest.approx(step)
+
+
 def test_the_ekf_takes_the_offset_as_a_measurement_of_its_state() -> None:
     ekf = Ekf(np.zeros(EkfState.DIM), np.eye(EkfState.DIM), calibration=True)
     before = ekf.cal_cov[0, 0]
