@@ -43,7 +43,7 @@ def measured_step(yaw: np.ndarray, unknown: float) -> float:
 
 @dataclass(frozen=True)
 class CoarseOffsetConfig:
-    """The grid likelihood's settings (SI units), chosen on the validation drives' reference car (docs/ablation.md)."""
+    """The grid likelihood's settings (SI units), set on the reference car's validation drives (docs/ablation.md)."""
 
     smooth_rows: int = 10  # the cue's rate averaged over this many rows before its run's extremes are taken
     # the cue's error that does not average out (sideslip, road, c): common to the runs, so it blurs their

@@ -147,7 +147,7 @@ class CueOffset:
         self._n = 0
         self.blocks = 0
         self.coarse.reset()
-        self._coarse_on = False  # the last row came with a coarse gyro's step: b is the grid's
+        self._coarse_on = False  # the finest step the gyro has shown is coarse: b is the grid's
         self._pending: list[tuple[float, float, float]] = []  # the coarse gyro's straight rows: reading, a_y, v
         self._step = 0.0
         self._nis_sum = np.zeros(3)  # per cue: innovation squared over its predicted variance, summed over blocks
