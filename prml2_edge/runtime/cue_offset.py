@@ -114,9 +114,11 @@ class CueOffsetConfig:
     @classmethod
     def from_localizer(cls, config) -> CueOffsetConfig:
         """The settings a :class:`~prml2_edge.runtime.localizer_config.LocalizerConfig` gives (its floor under what
-        the cues tell, its a_y and steering restore floors); the rest default."""
+        the cues tell, its coarse-gyro threshold, on a low-friction road none: a sliding car's a_y / v does not tell
+        its yaw rate; its a_y and steering restore floors); the rest default."""
+        dry = float(getattr(config, "mu", 1.0)) > schema.LOW_MU_THRESHOLD
         return cls(systematic_std_radps=float(config.cue_offset_floor_radps),
-                   coarse_min_step_radps=float(config.cue_offset_coarse_min_step_radps),
+                   coarse_min_step_radps=float(config.cue_offset_coarse_min_step_radps) if dry else math.inf,
                    restore_std_floor=(float(config.cue_ay_restore_floor_mps2), RESTORE_STD_FLOOR[1],
                                       steering_offset(float(config.cue_steer_restore_floor_deg))))
 

@@ -197,6 +197,18 @@ def test_a_coarse_gyro_tells_its_offset_through_the_intervals_its_readings_allow
     assert fine.coarse.runs == 0 and fine.blocks == 30 and fine.offset == (fine.theta[0], math.sqrt(fine.P[0, 0]))
 
 
+def test_on_a_low_friction_road_a_coarse_gyro_keeps_its_blocks() -> None:
+    """a_y / v does not tell a sliding car's yaw rate: on a road the runtime is told is low-mu, no grid."""
+    from prml2_edge.runtime.cue_offset import CueOffsetConfig
+    from prml2_edge.runtime.localizer import LocalizerConfig
+
+    on = math.radians(1.0)
+    assert CueOffsetConfig.from_localizer(LocalizerConfig(cue_offset_coarse_min_step_radps=on)).coarse_min_step_radps \
+        == on
+    snow = CueOffsetConfig.from_localizer(LocalizerConfig(cue_offset_coarse_min_step_radps=on, mu=0.3))
+    assert snow.coarse_min_step_radps == math.inf
+
+
 def test_the_replay_measures_the_gyros_step_as_the_filter_does() -> None:
     from prml2_edge.runtime.coarse_offset import measured_step
 
