@@ -10,9 +10,10 @@ without growing righter (docs/ablation.md). What each run of one reading does te
 with ``ω`` the true rate over the run, told by the cues (``a_y / v`` less its offset ``c``, which the cue estimator
 learns from the cues' differences). Over minutes the runs' intervals, at different rates, close in on ``b``; where the
 reading steps, the two runs either side meet at the crossing. :class:`CoarseOffset` multiplies those intervals,
-softened by the cues' slow error, into a posterior over a grid of ``b``, each run's likelihood tempered (the runs'
-errors are not independent) and mixed with a small outlier share (a bend whose sideslip the cue misreads), so that
-one wrong run cannot collapse the posterior. It hands its mean and variance to :class:`~.cue_offset.CueOffset` in
+each softened only by the white noise of the gyro and of the smoothed cue and mixed with a small outlier share (a
+bend whose sideslip the cue misreads: one wrong run cannot collapse the posterior), into a likelihood over a grid of
+``b``, and blurs it once by the cue's common error (softening every run by it instead would, multiplied, peak the
+posterior in the middle of the allowed range). It hands its mean and variance to :class:`~.cue_offset.CueOffset` in
 place of the Gaussian ``b``.
 """
 
@@ -27,18 +28,22 @@ from prml2_edge import schema
 
 _Z = np.linspace(-8.0, 8.0, 16001)
 _PHI = np.array([0.5 * (1.0 + math.erf(z / math.sqrt(2.0))) for z in _Z])  # the standard normal CDF, tabled
+RESOLUTION_WINDOW = 200  # steps between distinct yaw-rate readings the filter's resolution estimate keeps
 
 
 def measured_step(yaw: np.ndarray, unknown: float) -> float:
     """The CAN yaw rate's resolution [rad/s] over the readings ``yaw`` as the runtime's filter measures it (the 10th
-    percentile of the first 200 steps between distinct readings, the smallest step before that); ``unknown`` (the
-    configured one) while the reading never changed. For a replay of rows the filter did not see."""
+    percentile of the first :data:`RESOLUTION_WINDOW` steps between distinct readings, the smallest step before
+    that); ``unknown`` (the configured one) while the reading never changed. For a replay of rows the filter did not
+    see (``PoseFilter._track_resolution`` is the incremental form)."""
     yaw = np.asarray(yaw, dtype=np.float64)
     steps = np.abs(np.diff(yaw[np.isfinite(yaw)]))
     steps = steps[steps > 0.0]
     if not steps.size:
         return float(unknown)
-    return float(np.percentile(steps[:200], 10)) if steps.size >= 200 else float(min(steps.min(), unknown))
+    if steps.size >= RESOLUTION_WINDOW:
+        return float(np.percentile(steps[:RESOLUTION_WINDOW], 10))
+    return float(min(steps.min(), unknown))
 
 
 @dataclass(frozen=True)
@@ -51,7 +56,6 @@ class CoarseOffsetConfig:
     slow_std_radps: float = 0.05 * schema.DEG_TO_RAD
     gyro_noise_radps: float = 0.06 * schema.DEG_TO_RAD  # the gyro's white noise before its rounding
     outlier_share: float = 0.05  # each run's likelihood mixed with this much of "the run says nothing"
-    tempering: float = 1.0  # each run's log-likelihood times this
     grid_step_radps: float = 0.005 * schema.DEG_TO_RAD
     min_run_rows: int = 3  # a run of one reading this short (after smoothing) is left out
 
@@ -99,7 +103,7 @@ class CoarseOffset:
             hi = (run_r[0] + half - float(run_w.max()) + reach - self.grid) / s
             lo = (run_r[0] - half - float(run_w.min()) - reach - self.grid) / s
             lik = np.interp(hi, _Z, _PHI) - np.interp(lo, _Z, _PHI)
-            self.loglik += cfg.tempering * np.log(cfg.outlier_share + (1.0 - cfg.outlier_share) * np.maximum(lik, 0.0))
+            self.loglik += np.log(cfg.outlier_share + (1.0 - cfg.outlier_share) * np.maximum(lik, 0.0))
             used += 1
         self.runs += used
         return used

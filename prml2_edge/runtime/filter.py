@@ -41,6 +41,7 @@ import numpy as np
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import CalibrationNoise, CalibrationStd, Ekf, StepStatus
 from prml2_edge.runtime.axle_speed import front_speed, rear_speed
+from prml2_edge.runtime.coarse_offset import RESOLUTION_WINDOW as _RESOLUTION_WINDOW
 from prml2_edge.runtime.cue_offset import CueOffset, CueOffsetConfig
 from prml2_edge.runtime.estimator import Estimate
 from prml2_edge.runtime.filter_gnss import GnssFusion
@@ -59,7 +60,6 @@ _WHEELS = np.array(schema.WHEEL_SPEED_INDICES)
 _WHEEL_LIST = [int(i) for i in _WHEELS]
 _YAW, _OMEGA, _VX = EkfState.YAW.start, EkfState.OMEGA_Z.start, EkfState.VEL.start
 _AX = EkfState.ACC.start
-_RESOLUTION_WINDOW = 200  # steps between distinct yaw-rate readings kept for the resolution estimate
 
 
 def yaw_cue_var(config, resolution_radps: float) -> float:
