@@ -179,6 +179,9 @@ class LocalizerConfig:
             raise ValueError(f"steering_ratio must be > 0, got {self.steering_ratio}")
         if not (math.isfinite(self.cue_offset_floor_radps) and self.cue_offset_floor_radps >= 0.0):
             raise ValueError(f"cue_offset_floor_radps must be >= 0 (0: no floor), got {self.cue_offset_floor_radps}")
+        if not self.cue_offset_coarse_min_step_radps > 0.0:  # NaN too
+            raise ValueError("cue_offset_coarse_min_step_radps must be > 0 [rad/s] (inf: off), got "
+                             f"{self.cue_offset_coarse_min_step_radps}")
         for name in ("cal_yaw_offset_psd", "cal_wheel_scale_psd", "cue_steer_restore_floor_deg",
                      "cue_ay_restore_floor_mps2"):
             value = getattr(self, name)

@@ -207,6 +207,9 @@ def test_on_a_low_friction_road_a_coarse_gyro_keeps_its_blocks() -> None:
         == on
     snow = CueOffsetConfig.from_localizer(LocalizerConfig(cue_offset_coarse_min_step_radps=on, mu=0.3))
     assert snow.coarse_min_step_radps == math.inf
+    for bad in (float("nan"), 0.0, -1.0):
+        with pytest.raises(ValueError, match="cue_offset_coarse_min_step_radps must be > 0"):
+            LocalizerConfig(cue_offset_coarse_min_step_radps=bad)
 
 
 def test_the_replay_measures_the_gyros_step_as_the_filter_does() -> None:
