@@ -32,7 +32,7 @@ from prml2_edge.evaluation.consumer_gnss import (
 from prml2_edge.evaluation.osd import StandstillBias, drive_bias
 from prml2_edge.evaluation.standstill_restore import STANDSTILL_RESTORES, restore_standstill_calibration
 from prml2_edge.guard import physics_guard
-from prml2_edge.runtime.coarse_offset import measured_step
+from prml2_edge.runtime.yaw_resolution import YawResolution
 from prml2_edge.schema import EkfState, Z
 
 DR_WINDOW_S = 60.0  # dead-reckoning window [s]
@@ -342,7 +342,7 @@ def localizer_for(spec: ModelSpec, task: WindowTask, stride: int = 1, model=None
     cues = loc.filter.cue_offset
     if spec.cue_drive_so_far and cues is not None and task.before is not None:
         so_far = np.concatenate([task.before, task.onboard[:task.history]])
-        step = measured_step(so_far[:, schema.SIGNAL_BY_NAME["yaw_rate_radps"].index], loc.filter.yaw_resolution_radps)
+        step = YawResolution.of(so_far[:, schema.SIGNAL_BY_NAME["yaw_rate_radps"].index], loc.filter.config)
         cues.rows(so_far, loc.filter.yaw_gain_factor, step)
     if not spec.guard:
         loc.a_max_mps2 = NO_GUARD_A_MAX_MPS2  # ablation: no friction-circle bound (speed/yaw-rate bounds stay)

@@ -43,8 +43,8 @@ from prml2_edge.evaluation.consumer_gnss import (
     GNSS_POS_STD_M,
     GNSS_RATE_HZ,
 )
-from prml2_edge.runtime.coarse_offset import measured_step
 from prml2_edge.runtime.yaw_gain import YawGainEstimator
+from prml2_edge.runtime.yaw_resolution import YawResolution
 
 HISTORY_MINUTES = 20.0
 HISTORY_DRIVES = 4
@@ -116,7 +116,7 @@ def _simulate_history(drive, gain: float, minutes: float, drives: int, variation
     est = YawGainEstimator(math.radians(GNSS_HEADING_STD_DEG))
     settings = CARS[str(meta["vehicle"])].filter_settings()  # (_history: a car of the fleet)
     scale = WheelScaleHistory(**settings)
-    cues, configured = _cue_estimator(settings["steering_ratio"])
+    cues, runtime = _cue_estimator(settings["steering_ratio"])
     cue_rng = np.random.default_rng([zlib.crc32(drive.name.encode()), 0x43554553])  # "CUES": the gain's draws stay
     # the car's gain and cue offsets: the drive's, or (DRIVE_DRAW) the drive's plus one per-drive variation
     car_rng = np.random.default_rng([zlib.crc32(drive.name.encode()), 0x43415253])  # "CARS"
@@ -133,7 +133,7 @@ def _simulate_history(drive, gain: float, minutes: float, drives: int, variation
         scale.feed(hist, rng)
         if j:
             cues.new_drive()
-        cues.rows(hist.onboard, 1.0, measured_step(hist.onboard[:, _YAW], configured))  # as the runtime
+        cues.rows(hist.onboard, 1.0, YawResolution.of(hist.onboard[:, _YAW], runtime))  # as the runtime
     return {"gain": None if coarse else (est.info, est.info_c), "scale": (scale.k, scale.var),
             "cues": cues.nuisance()}
 
@@ -144,7 +144,7 @@ def _cue_estimator(steering_ratio: float):
 
     cfg = LocalizerConfig()
     return (CueOffset(cfg.cal_yaw_offset_prior_std_radps, steering_ratio, CueOffsetConfig.from_localizer(cfg)),
-            cfg.yaw_cue_resolution_radps)
+            cfg)
 
 
 def _car_cue_errors(meta: dict, rng: np.random.Generator) -> dict:

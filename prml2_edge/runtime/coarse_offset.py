@@ -28,24 +28,6 @@ from prml2_edge import schema
 
 _Z = np.linspace(-8.0, 8.0, 16001)
 _PHI = np.array([0.5 * (1.0 + math.erf(z / math.sqrt(2.0))) for z in _Z])  # the standard normal CDF, tabled
-RESOLUTION_WINDOW = 200  # steps between distinct yaw-rate readings the filter's resolution estimate keeps
-
-
-def measured_step(yaw: np.ndarray, unknown: float) -> float:
-    """The CAN yaw rate's resolution [rad/s] over the readings ``yaw`` as the runtime's filter measures it (the 10th
-    percentile of the first :data:`RESOLUTION_WINDOW` steps between distinct readings, the smallest step before
-    that); ``unknown`` (the configured one) while the reading never changed. For a replay of rows the filter did not
-    see (``PoseFilter._track_resolution`` is the incremental form)."""
-    yaw = np.asarray(yaw, dtype=np.float64)
-    steps = np.abs(np.diff(yaw[np.isfinite(yaw)]))
-    steps = steps[steps > 0.0]
-    if not steps.size:
-        return float(unknown)
-    if steps.size >= RESOLUTION_WINDOW:
-        return float(np.percentile(steps[:RESOLUTION_WINDOW], 10))
-    return float(min(steps.min(), unknown))
-
-
 @dataclass(frozen=True)
 class CoarseOffsetConfig:
     """The grid likelihood's settings (SI units), set on the reference car's validation drives (docs/ablation.md)."""

@@ -31,7 +31,6 @@ the next fix.
 
 from __future__ import annotations
 
-import collections
 import functools
 import math
 from dataclasses import dataclass
@@ -41,7 +40,6 @@ import numpy as np
 from prml2_edge import schema
 from prml2_edge.ekf.numpy_ekf import CalibrationNoise, CalibrationStd, Ekf, StepStatus
 from prml2_edge.runtime.axle_speed import front_speed, rear_speed
-from prml2_edge.runtime.coarse_offset import RESOLUTION_WINDOW as _RESOLUTION_WINDOW
 from prml2_edge.runtime.cue_offset import CueOffset, CueOffsetConfig
 from prml2_edge.runtime.estimator import Estimate
 from prml2_edge.runtime.filter_gnss import GnssFusion
@@ -50,6 +48,7 @@ from prml2_edge.runtime.initial_pose import InitialPose, initial_state
 from prml2_edge.runtime.rows import GnssFix
 from prml2_edge.runtime.slide import SlideMonitor
 from prml2_edge.runtime.yaw_gain import YawGainEstimator
+from prml2_edge.runtime.yaw_resolution import YawResolution
 from prml2_edge.schema import CalState, EkfState
 
 _SIG = schema.SIGNAL_BY_NAME
@@ -131,16 +130,9 @@ class PoseFilter(GnssFusion):
         self._odo_anchor: tuple[float, np.ndarray] | None = None  # (t, fix position) the wheel distance is from
         self._odo = np.zeros(2)  # wheel displacement since the anchor, world frame, along the filter's heading
         self.n_scale_updates = 0
-        self._yaw_last: float | None = None
-        self._yaw_steps: collections.deque[float] = collections.deque(maxlen=_RESOLUTION_WINDOW)
-        self.yaw_resolution_radps = float(self.config.yaw_cue_resolution_radps)
+        # the CAN yaw rate's resolution and whether it is coarse, measured from its steps (runtime/yaw_resolution.py)
+        self.resolution = YawResolution.from_config(self.config)
         self._yaw_cue_var = self._yaw_var()
-        self._resolution_measured = False
-        # the CAN yaw rate is coarse: its measured resolution, or (coarse_until_fine_step) until measured the
-        # configured one and every step it has taken, at least coarse_yaw_resolution_radps (kept up to date by
-        # _track_resolution)
-        self._coarse_gyro = bool(self.config.coarse_until_fine_step) \
-            and self.yaw_resolution_radps >= self.config.coarse_yaw_resolution_radps
         self.n_gnss_rejected = 0  # fixes refused by the innovation gate
         self.n_gnss_suspect = 0  # fixes not fused because the odometry contradicts the fix stream
         self.n_gnss_init_rejected = 0  # first fixes that the next fix or the wheels contradicted
@@ -202,7 +194,7 @@ class PoseFilter(GnssFusion):
         skip_model = still and self.config.standstill_skips_model
         z_var = est.z_var
         infl = self.omega_var_inflation
-        coarse = self._coarse_gyro
+        coarse = self.resolution.coarse
         if coarse:
             infl = self.omega_var_inflation_coarse
         if self.calibrated and z_var is not None and infl != 1.0:
@@ -297,7 +289,7 @@ class PoseFilter(GnssFusion):
     def _gain_heading(self, t_s: float, psi: float) -> None:
         """A fused GNSS heading as gain evidence, when the gyro is fine enough to learn from (quantisation without
         dither leaves an error that follows the turn) and the row had a yaw rate and a cue-axle speed."""
-        fine = self._resolution_measured and self.yaw_resolution_radps < self.config.yaw_gain_max_resolution_radps
+        fine = self.resolution.measured and self.yaw_resolution_radps < self.config.yaw_gain_max_resolution_radps
         speed = self._axle_speed(*self._row) if fine and self._row_yaw is not None and self._row is not None else None
         if speed is not None and speed >= self.config.gnss_heading_min_speed_mps:
             self.yaw_gain.heading(t_s, psi, self._row_yaw, speed)
@@ -371,24 +363,13 @@ class PoseFilter(GnssFusion):
     def _yaw_var(self) -> float:
         return yaw_cue_var(self.config, self.yaw_resolution_radps)
 
+    @property
+    def yaw_resolution_radps(self) -> float:
+        """The CAN yaw rate's resolution as measured so far [rad/s] (the configured one before any step)."""
+        return self.resolution.radps
+
     def _track_resolution(self, yaw: float) -> None:
-        """The yaw-rate signal's resolution from the steps between successive distinct readings."""
-        last, self._yaw_last = self._yaw_last, yaw
-        if last is None or yaw == last:
-            return
-        step = abs(yaw - last)
-        self._yaw_steps.append(step)
-        if not self._resolution_measured:
-            if self.config.resolution_from_steps and step < self.yaw_resolution_radps:
-                self.yaw_resolution_radps = step  # a quantised signal's every step is a multiple of its resolution
-                self._yaw_cue_var = self._yaw_var()
-            if step < self.config.coarse_yaw_resolution_radps:
-                self._coarse_gyro = False  # a fine step: not coarse until measured otherwise
-        if len(self._yaw_steps) == _RESOLUTION_WINDOW:
-            self.yaw_resolution_radps = float(np.percentile(self._yaw_steps, 10))
-            self._resolution_measured = True
-            self._coarse_gyro = self.yaw_resolution_radps >= self.config.coarse_yaw_resolution_radps
-            self._yaw_steps.clear()
+        if self.resolution.reading(yaw):
             self._yaw_cue_var = self._yaw_var()
 
     def correct_yaw_cue(self, offset: float, std: float, t_from: float, t_now: float) -> None:

@@ -14,8 +14,8 @@ from prml2_edge.evaluation.error_model import consistency, fit_inflation, mean_e
 from prml2_edge.evaluation.models import OsdModel
 from prml2_edge.evaluation.osd import StandstillBias
 from prml2_edge.evaluation.standstill_restore import restore_standstill_calibration
-from prml2_edge.runtime.coarse_offset import measured_step
 from prml2_edge.runtime.localizer import LocalizerConfig, StreamingLocalizer, omega_var_inflation
+from prml2_edge.runtime.yaw_resolution import YawResolution
 from prml2_edge.schema import CalState, EkfState, Z
 
 DT = schema.DT_S
@@ -240,7 +240,7 @@ def test_next_to_a_coarse_gyro_the_model_is_held_inside_the_readings_interval():
         loc = StreamingLocalizer(model, cfg)
         traj = loc.run_arrays(onboard, x0, start_index=schema.WINDOW_LEN - 1)
         assert loc.filter.yaw_resolution_radps == pytest.approx(math.radians(step))
-        replayed = measured_step(onboard[:, schema.SIGNAL_BY_NAME["yaw_rate_radps"].index], math.radians(1.28))
+        replayed = YawResolution.of(onboard[:, schema.SIGNAL_BY_NAME["yaw_rate_radps"].index], cfg)
         assert replayed == pytest.approx(loc.filter.yaw_resolution_radps)  # what a replay of these rows measures
         error = math.degrees(float(np.mean(traj.x[-100:, EkfState.OMEGA_Z.start]))) - true_dps
         offset = math.degrees(float(loc.filter.ekf.x[CalState.YAW_RATE_OFFSET.start]))
@@ -268,5 +268,5 @@ def test_the_resolution_can_be_bounded_by_the_steps_seen_before_it_is_measured()
         return math.degrees(loc.filter.yaw_resolution_radps)
 
     assert resolution_dps(LocalizerConfig()) == pytest.approx(0.5)
-    assert math.degrees(measured_step(onboard[:, yaw], math.radians(1.28))) == pytest.approx(0.5)  # replays
+    assert math.degrees(YawResolution.of(onboard[:, yaw], LocalizerConfig())) == pytest.approx(0.5)  # replays
     assert resolution_dps(LocalizerConfig(resolution_from_steps=False)) == pytest.approx(1.28)

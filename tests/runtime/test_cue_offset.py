@@ -211,18 +211,6 @@ def test_on_a_low_friction_road_a_coarse_gyro_keeps_its_blocks() -> None:
         with pytest.raises(ValueError, match="cue_offset_coarse_min_step_radps must be > 0"):
             LocalizerConfig(cue_offset_coarse_min_step_radps=bad)
 
-
-def test_the_replay_measures_the_gyros_step_as_the_filter_does() -> None:
-    from prml2_edge.runtime.coarse_offset import measured_step
-
-    step = math.radians(1.28)
-    few = np.where((np.arange(500) // 50) % 2 == 1, math.radians(0.5), 0.0)  # 9 steps of 0.5 deg/s
-    assert measured_step(few, step) == pytest.approx(math.radians(0.5))
-    assert measured_step(np.zeros(100), step) == step  # never changed: the configured one
-    many = np.round(np.random.default_rng(0).normal(0.0, 2 * step, 1000) / step) * step
-    assert measured_step(many, math.radians(5.0)) == pytest.approx(step)
-
-
 def test_the_ekf_takes_the_offset_as_a_measurement_of_its_state() -> None:
     ekf = Ekf(np.zeros(EkfState.DIM), np.eye(EkfState.DIM), calibration=True)
     before = ekf.cal_cov[0, 0]
