@@ -106,6 +106,9 @@ STOOD = "the default, the stop's offset as the runtime's standstill update knows
 # the cue estimator started at the window (the benchmark's way before 2026-12-07): a runtime running since the
 # drive's start has fed it the drive's minutes before the window (ModelSpec.cue_drive_so_far, docs/ablation.md)
 WINDOW_START_ROW = "the default, the cue estimator from the window's start (before)"
+# a coarse gyro's offset from its blocks alone, as before 2026-12-07 (no grid of the intervals its readings allow)
+NO_GRID = ("cue_offset_coarse_min_step_radps", float("inf"))
+NO_GRID_ROW = "the default, a coarse gyro's offset from its blocks alone (before)"
 
 
 NO_COARSE = ("coarse_yaw_resolution_radps", float("inf"))  # the coarse-gyro inflation off
@@ -167,7 +170,8 @@ def variants(model: str) -> dict[str, ModelSpec]:
             FINE_UNTIL_ROW: replace(cal, filter=(FINE_UNTIL,)),
             CONFIGURED_RES_ROW: replace(cal, filter=(CONFIGURED_RES,)),
             STOOD: replace(cal, standstill_restore="runtime"),
-            WINDOW_START_ROW: replace(cal, cue_drive_so_far=False)}
+            WINDOW_START_ROW: replace(cal, cue_drive_so_far=False),
+            NO_GRID_ROW: replace(cal, filter=(NO_GRID,))}
 
 
 PROTOCOLS = {"paper": 0.0, "deployment": DEPLOYMENT_PREROLL_S}

@@ -103,7 +103,10 @@ class CueOffsetConfig:
     min_gain: float = 0.5  # an export needs this much information on b, in units of its prior's
     # a gyro whose resolution is at least this [rad/s] tells its offset through the intervals its readings allow
     # (module docstring, "A coarse gyro"); inf: never, every gyro's block means are taken as they are
-    coarse_min_step_radps: float = math.inf
+    coarse_min_step_radps: float = 1.0 * schema.DEG_TO_RAD
+    # ... once the grid's |b| less two of its sigmas reaches this [rad/s]; before, the gyro's blocks as they are (the
+    # grid listens alongside). 0: the grid from the first run
+    coarse_min_offset_radps: float = 0.1 * schema.DEG_TO_RAD
     # a floor under what the cues can tell of b [rad/s], one sigma: their errors that do not average out (a van's
     # steering geometry against the nominal, the history's offsets); the exports never add up to more information
     # than 1 / floor^2. 0: none
@@ -119,6 +122,7 @@ class CueOffsetConfig:
         dry = float(getattr(config, "mu", 1.0)) > schema.LOW_MU_THRESHOLD
         return cls(systematic_std_radps=float(config.cue_offset_floor_radps),
                    coarse_min_step_radps=float(config.cue_offset_coarse_min_step_radps) if dry else math.inf,
+                   coarse_min_offset_radps=float(getattr(config, "cue_offset_coarse_min_offset_radps", 0.0)),
                    restore_std_floor=(float(config.cue_ay_restore_floor_mps2), RESTORE_STD_FLOOR[1],
                                       steering_offset(float(config.cue_steer_restore_floor_deg))))
 
@@ -149,7 +153,8 @@ class CueOffset:
         self._n = 0
         self.blocks = 0
         self.coarse.reset()
-        self._coarse_on = False  # the finest step the gyro has shown is coarse: b is the grid's
+        self._coarse_on = False  # the finest step the gyro has shown is coarse: the grid listens
+        self._grid_on = False  # ... and tells a large enough offset (coarse_min_offset_radps): b is the grid's
         self._pending: list[tuple[float, float, float]] = []  # the coarse gyro's straight rows: reading, a_y, v
         self._step = 0.0
         self._nis_sum = np.zeros(3)  # per cue: innovation squared over its predicted variance, summed over blocks
@@ -183,7 +188,7 @@ class CueOffset:
     @property
     def offset(self) -> tuple[float, float]:
         """``(b, its standard deviation)`` [rad/s]: a coarse gyro's from the grid, any other's from the filter."""
-        if self._coarse_on:
+        if self._grid_on:
             return self.coarse.offset
         return float(self.theta[0]), math.sqrt(max(float(self.P[0, 0]), 0.0))
 
@@ -195,6 +200,8 @@ class CueOffset:
         if step_radps is not None:
             self._finest = min(self._finest, float(step_radps))
         self._coarse_on = math.isfinite(self._finest) and self._finest >= self.config.coarse_min_step_radps
+        if not self._coarse_on or self.config.coarse_min_offset_radps <= 0.0:
+            self._grid_on = self._coarse_on
         v = self._straight_speed(values, valid)
         if v is None:
             self._sums[:] = 0.0
@@ -213,7 +220,7 @@ class CueOffset:
         means = self._sums / self._n
         self._sums[:] = 0.0
         self._n = 0
-        self._update(means, with_gyro=not self._coarse_on)
+        self._update(means, with_gyro=not self._grid_on)
         self._flush_coarse()
         return True
 
@@ -226,8 +233,12 @@ class CueOffset:
         self._pending = []
         inv_v = 1.0 / rows[:, 2]
         rate = (rows[:, 1] - self.theta[1]) * inv_v
-        return self.coarse.block(rows[:, 0], rate, self._step,
+        used = self.coarse.block(rows[:, 0], rate, self._step,
                                  math.sqrt(max(float(self.P[1, 1]), 0.0)) * float(np.mean(inv_v)))
+        if used and not self._grid_on:  # the grid takes over once it tells a large enough offset
+            b, std = self.coarse.offset
+            self._grid_on = abs(b) - 2.0 * std >= self.config.coarse_min_offset_radps
+        return used
 
     def rows(self, onboard: np.ndarray, yaw_gain: float = 1.0, step_radps: float | None = None) -> int:
         """:meth:`row` over every row of ``onboard`` (N, 9) [SI, canonical order; NaN: a missing signal]: a drive's

@@ -182,8 +182,8 @@ def test_a_coarse_gyro_tells_its_offset_through_the_intervals_its_readings_allow
 
     step, b = math.radians(1.28), math.radians(b_dps)
     values = weaving(5 * 60 * 50, b, step)
-    blocks = CueOffset(math.radians(0.5), RATIO)
-    grid = CueOffset(math.radians(0.5), RATIO, CueOffsetConfig(coarse_min_step_radps=math.radians(1.0)))
+    blocks = CueOffset(math.radians(0.5), RATIO, CueOffsetConfig(coarse_min_step_radps=math.inf))  # the grid off
+    grid = CueOffset(math.radians(0.5), RATIO, CueOffsetConfig(coarse_min_offset_radps=0.0))  # from the first run
     blocks.rows(values, 1.0, step)
     grid.rows(values, 1.0, step)
     (wrong, wrong_std), (got, std) = blocks.offset, grid.offset
@@ -210,6 +210,31 @@ def test_on_a_low_friction_road_a_coarse_gyro_keeps_its_blocks() -> None:
     for bad in (float("nan"), 0.0, -1.0):
         with pytest.raises(ValueError, match="cue_offset_coarse_min_step_radps must be > 0"):
             LocalizerConfig(cue_offset_coarse_min_step_radps=bad)
+
+
+@pytest.mark.parametrize("b_dps", [-0.4, 0.0])
+def test_a_coarse_gyros_grid_takes_over_once_it_tells_a_large_offset(b_dps: float) -> None:
+    """With ``coarse_min_offset_radps`` the grid listens alongside the blocks and takes over only once it tells an
+    offset that large beyond two of its sigmas: a −0.4 deg/s offset under a weave does, no offset never does (the
+    blocks then run exactly as they would without the grid)."""
+    from prml2_edge.runtime.cue_offset import CueOffsetConfig
+    from prml2_edge.runtime.localizer import LocalizerConfig
+
+    step, b = math.radians(1.28), math.radians(b_dps)
+    values = weaving(5 * 60 * 50, b, step)
+    gated = CueOffset(math.radians(0.5), RATIO)  # the default: 1 deg/s steps, 0.1 deg/s
+    blocks = CueOffset(math.radians(0.5), RATIO, CueOffsetConfig(coarse_min_step_radps=math.inf))
+    gated.rows(values, 1.0, step)
+    blocks.rows(values, 1.0, step)
+    assert gated.coarse.runs > 100
+    if b_dps == -0.4:
+        assert gated.offset == gated.coarse.offset and abs(gated.offset[0] - b) < math.radians(0.05)
+    else:
+        assert gated.offset == blocks.offset and np.array_equal(gated.theta, blocks.theta)
+    for bad in (float("nan"), -0.1, math.inf):
+        with pytest.raises(ValueError, match="cue_offset_coarse_min_offset_radps must be >= 0"):
+            LocalizerConfig(cue_offset_coarse_min_offset_radps=bad)
+
 
 def test_the_ekf_takes_the_offset_as_a_measurement_of_its_state() -> None:
     ekf = Ekf(np.zeros(EkfState.DIM), np.eye(EkfState.DIM), calibration=True)
