@@ -301,8 +301,10 @@ class CueOffset:
         b0, var0 = self._exported
         gain = 1.0 / var - 1.0 / var0
         if gain < self.config.min_gain / float(self._prior[0, 0]):
-            if gain < 0.0:
+            if gain < 0.0 and not self._grid_on:
                 self._exported = (b, var)  # drifted: what was exported is older than the estimate's memory
+            # the grid forgets nothing: a wider posterior is a reshaped one, its information already handed over.
+            # So is the blocks' it took over from: once surer than they were, its export replaces what they told
             return None
         self._exported = (b, var)
         return (b / var - b0 / var0) / gain, 1.0 / gain
