@@ -162,8 +162,10 @@ class CueOffset:
         self.restart_export()  # (b, var) at the last export
 
     def restart_export(self) -> None:
-        """The next :meth:`export` hands over everything learned (to a filter that starts again from its prior)."""
+        """The next :meth:`export` hands over everything learned (to a filter that starts again from its prior, or
+        that has forgotten what the blocks told it when the grid took over: :attr:`handed_over`)."""
         self._exported = (0.0, float(self._prior[0, 0]) + self.config.systematic_std_radps ** 2)
+        self.handed_over = False
 
     def nuisance(self) -> tuple[np.ndarray, np.ndarray]:
         """The cues' own offsets ``(c, k, d)`` (:data:`NUISANCE_NAMES`) and their covariance (3, 3): what the
@@ -237,7 +239,7 @@ class CueOffset:
                                  math.sqrt(max(float(self.P[1, 1]), 0.0)) * float(np.mean(inv_v)))
         if used and not self._grid_on:  # the grid takes over once it tells a large enough offset
             b, std = self.coarse.offset
-            self._grid_on = abs(b) - 2.0 * std >= self.config.coarse_min_offset_radps
+            self._grid_on = self.handed_over = abs(b) - 2.0 * std >= self.config.coarse_min_offset_radps
         return used
 
     def rows(self, onboard: np.ndarray, yaw_gain: float = 1.0, step_radps: float | None = None) -> int:
@@ -303,8 +305,7 @@ class CueOffset:
         if gain < self.config.min_gain / float(self._prior[0, 0]):
             if gain < 0.0 and not self._grid_on:
                 self._exported = (b, var)  # drifted: what was exported is older than the estimate's memory
-            # the grid forgets nothing: a wider posterior is a reshaped one, its information already handed over.
-            # So is the blocks' it took over from: once surer than they were, its export replaces what they told
+            # the grid forgets nothing: a wider posterior is a reshaped one, its information already handed over
             return None
         self._exported = (b, var)
         return (b / var - b0 / var0) / gain, 1.0 / gain

@@ -59,6 +59,7 @@ _WHEELS = np.array(schema.WHEEL_SPEED_INDICES)
 _WHEEL_LIST = [int(i) for i in _WHEELS]
 _YAW, _OMEGA, _VX = EkfState.YAW.start, EkfState.OMEGA_Z.start, EkfState.VEL.start
 _AX = EkfState.ACC.start
+_B_YAW = CalState.YAW_RATE_OFFSET.start
 
 
 def yaw_cue_var(config, resolution_radps: float) -> float:
@@ -418,7 +419,15 @@ class PoseFilter(GnssFusion):
 
     def _export_cues(self) -> None:
         """What the cue estimator learned of the gyro's offset since its last export, to the EKF's offset state."""
-        measured = self.cue_offset.export()  # type: ignore[union-attr]
+        cues = self.cue_offset
+        if cues.handed_over:  # type: ignore[union-attr]
+            # a coarse gyro's grid took over from its blocks (runtime/cue_offset.py): what they told the offset state
+            # is forgotten (its variance grows by the prior's) and the grid's whole estimate goes over instead
+            p = self.ekf.P.copy()  # type: ignore[union-attr]
+            p[_B_YAW, _B_YAW] += self.config.cal_yaw_offset_prior_std_radps ** 2
+            self.ekf.P = p  # type: ignore[union-attr]
+            cues.restart_export()  # type: ignore[union-attr]
+        measured = cues.export()  # type: ignore[union-attr]
         if measured is not None:
             self.ekf.update_yaw_offset(*measured)  # type: ignore[union-attr]
 

@@ -216,9 +216,9 @@ def test_on_a_low_friction_road_a_coarse_gyro_keeps_its_blocks() -> None:
 def test_a_coarse_gyros_grid_takes_over_once_it_tells_a_large_offset(b_dps: float) -> None:
     """With ``coarse_min_offset_radps`` the grid listens alongside the blocks and takes over only once it tells an
     offset that large beyond two of its sigmas: a −0.4 deg/s offset under a weave does, no offset never does (the
-    blocks then run exactly as they would without the grid). Its exports replace the blocks' in the filter: fused,
-    they say what the grid says, no surer (they once said it 2 x too surely, the blocks' and the grid's widening
-    counted again)."""
+    blocks then run exactly as they would without the grid). At the handover the filter forgets what the blocks told
+    it and takes the grid's whole estimate: fused, the exports say what the grid says, no surer (they once said it
+    2 x too surely, the blocks' and each widening of the grid counted again)."""
     from prml2_edge.runtime.cue_offset import CueOffsetConfig
     from prml2_edge.runtime.localizer import LocalizerConfig
 
@@ -227,19 +227,27 @@ def test_a_coarse_gyros_grid_takes_over_once_it_tells_a_large_offset(b_dps: floa
     gated = CueOffset(math.radians(0.5), RATIO)  # the default: 1 deg/s steps, 0.1 deg/s
     blocks = CueOffset(math.radians(0.5), RATIO, CueOffsetConfig(coarse_min_step_radps=math.inf))
     x, p = 0.0, math.radians(0.5) ** 2  # the exports fused one after another, as the pose filter's offset state does
+    handovers = 0
     for values_row in values:
-        if gated.row(values_row, np.isfinite(values_row), 1.0, step) and (m := gated.export()) is not None:
+        if not gated.row(values_row, np.isfinite(values_row), 1.0, step):
+            continue
+        if gated.handed_over:  # the blocks' word forgotten, the grid's whole estimate instead (PoseFilter)
+            handovers += 1
+            p += math.radians(0.5) ** 2
+            gated.restart_export()
+        if (m := gated.export()) is not None:
             g = p / (p + m[1])
             x, p = x + g * (m[0] - x), (1 - g) * p
     blocks.rows(values, 1.0, step)
     assert gated.coarse.runs > 100
     if b_dps == -0.4:
         assert gated.offset == gated.coarse.offset and abs(gated.offset[0] - b) < math.radians(0.05)
+        assert handovers == 1
         # what the filter was told is the grid's, not the grid's on top of the blocks' it replaced
         assert x == pytest.approx(gated.offset[0], abs=math.radians(0.02))
         assert math.sqrt(p) > 0.85 * gated.offset[1]
     else:
-        assert gated.offset == blocks.offset and np.array_equal(gated.theta, blocks.theta)
+        assert handovers == 0 and gated.offset == blocks.offset and np.array_equal(gated.theta, blocks.theta)
     for bad in (float("nan"), -0.1, math.inf):
         with pytest.raises(ValueError, match="cue_offset_coarse_min_offset_radps must be >= 0"):
             LocalizerConfig(cue_offset_coarse_min_offset_radps=bad)
