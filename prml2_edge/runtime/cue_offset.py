@@ -25,9 +25,13 @@ nothing is counted twice), where it meets the CAN yaw-rate offset state.
 
 A coarse gyro (the ReV-StED car's 1.28 deg/s) reads 0 on a straight whatever its offset within half a step, so its
 block means measure the rounding of the road's gentle curves, not ``b``, and the blocks grow surer without growing
-righter (docs/ablation.md). With ``coarse_min_step_radps`` at or under its resolution, its blocks give only the cues'
-differences (which the gyro cancels out of, so ``c, k, d`` still learn), and ``b`` comes from the intervals its
-readings allow, a likelihood over a grid (:mod:`~prml2_edge.runtime.coarse_offset`).
+righter (docs/ablation.md). With ``coarse_min_step_radps`` at or under its resolution, the intervals its readings
+allow build a likelihood over a grid of ``b`` alongside (:mod:`~prml2_edge.runtime.coarse_offset`). Once the grid
+tells an offset beyond ``coarse_min_offset_radps`` plus two of its sigmas it takes over for the drive: ``b`` is the
+grid's, the blocks give only the cues' differences (which the gyro cancels out of, so ``c, k, d`` still learn), and
+:attr:`CueOffset.handed_over` tells the pose filter to forget what the blocks told it and take the grid's whole
+estimate. A small offset is left to the blocks: there the filter's cue wants the rounding's mean, which the blocks
+and the fixes learn, not the offset (docs/ablation.md).
 
 The cues' own offsets belong to the car (the accelerometer's mounting, the tyres, the steering's alignment), not to
 the drive, so the calibration file keeps them (:meth:`CueOffset.nuisance`) and the next drive starts from them
@@ -189,7 +193,8 @@ class CueOffset:
 
     @property
     def offset(self) -> tuple[float, float]:
-        """``(b, its standard deviation)`` [rad/s]: a coarse gyro's from the grid, any other's from the filter."""
+        """``(b, its standard deviation)`` [rad/s]: a coarse gyro's from the grid once it took over, else the
+        filter's."""
         if self._grid_on:
             return self.coarse.offset
         return float(self.theta[0]), math.sqrt(max(float(self.P[0, 0]), 0.0))
@@ -287,10 +292,12 @@ class CueOffset:
         return self._nis_sum / self._nis_n if self._nis_n else np.full(3, np.nan)
 
     def summary(self) -> dict:
-        """For the run's summary: the blocks used, the offset the cues tell with its sigma [deg/s] and the NIS (None
-        before the first block: the summary is written as strict JSON, which has no NaN)."""
+        """For the run's summary: the blocks used, a coarse gyro's runs of one reading and whether its grid took
+        over, the offset the cues tell with its sigma [deg/s] and the NIS (None before the first block: the summary
+        is written as strict JSON, which has no NaN)."""
         b, std = self.offset
-        return {"blocks": self.blocks, "coarse_runs": self.coarse.runs, "restored": self.restored,
+        return {"blocks": self.blocks, "coarse_runs": self.coarse.runs, "coarse_grid": self._grid_on,
+                "restored": self.restored,
                 "yaw_rate_offset_dps": math.degrees(b), "yaw_rate_offset_std_dps": math.degrees(std),
                 "nis": [round(float(x), 3) for x in self.nis] if self._nis_n else None}
 

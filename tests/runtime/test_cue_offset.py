@@ -240,6 +240,7 @@ def test_a_coarse_gyros_grid_takes_over_once_it_tells_a_large_offset(b_dps: floa
             x, p = x + g * (m[0] - x), (1 - g) * p
     blocks.rows(values, 1.0, step)
     assert gated.coarse.runs > 100
+    assert gated.summary()["coarse_grid"] is (b_dps == -0.4)
     if b_dps == -0.4:
         assert gated.offset == gated.coarse.offset and abs(gated.offset[0] - b) < math.radians(0.05)
         assert handovers == 1
