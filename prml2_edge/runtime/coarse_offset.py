@@ -95,7 +95,8 @@ class CoarseOffset:
         """``(b, its standard deviation)`` [rad/s]: the posterior's mean and spread (the prior times the runs'
         likelihood blurred by the common error)."""
         lik = np.exp(self.loglik - self.loglik.max())
-        half = int(math.ceil(4.0 * self.blur_std / self.config.grid_step_radps))
+        # (a blur wider than the grid is cut to it: np.convolve's 'same' would return the longer of the two)
+        half = min(int(math.ceil(4.0 * self.blur_std / self.config.grid_step_radps)), (len(self.grid) - 1) // 2)
         if half:
             kernel = np.exp(-0.5 * np.square(np.arange(-half, half + 1) * self.config.grid_step_radps / self.blur_std))
             lik = np.convolve(lik, kernel / kernel.sum(), mode="same")

@@ -344,3 +344,18 @@ def test_a_cars_history_teaches_the_file_the_cues_own_offsets() -> None:
     assert values[1] == pytest.approx(0.006 / NOMINAL_TRACK_M, rel=0.1)
     assert values[2] == pytest.approx(steer / (ratio * NOMINAL_WHEELBASE_M), rel=0.1)
     assert np.all(np.sqrt(np.diag(cov)) < [0.05, 0.0003, 0.0003])
+
+
+def test_a_blur_wider_than_the_grid_still_gives_an_offset() -> None:
+    """The cue's common error can be wider than the grid (a_y's offset barely known, slow rows): the posterior is
+    then the prior's, not a shape error (it once raised inside the runtime's filter on a fault-injection drive)."""
+    from prml2_edge.runtime.coarse_offset import CoarseOffset
+
+    grid = CoarseOffset(math.radians(0.5))
+    step = math.radians(1.28)
+    readings = np.repeat([0.0, step, 0.0], 20)
+    rate = np.full(len(readings), math.radians(0.6))
+    assert grid.block(readings, rate, step, rate_std_radps=math.radians(50.0)) > 0
+    b, std = grid.offset
+    assert math.isfinite(b) and 0.0 < std <= math.radians(0.5)
+
