@@ -126,7 +126,7 @@ class CueOffsetConfig:
         dry = float(getattr(config, "mu", 1.0)) > schema.LOW_MU_THRESHOLD
         return cls(systematic_std_radps=float(config.cue_offset_floor_radps),
                    coarse_min_step_radps=float(config.cue_offset_coarse_min_step_radps) if dry else math.inf,
-                   coarse_min_offset_radps=float(getattr(config, "cue_offset_coarse_min_offset_radps", 0.0)),
+                   coarse_min_offset_radps=float(config.cue_offset_coarse_min_offset_radps),
                    restore_std_floor=(float(config.cue_ay_restore_floor_mps2), RESTORE_STD_FLOOR[1],
                                       steering_offset(float(config.cue_steer_restore_floor_deg))))
 
