@@ -2,7 +2,9 @@
 
 The model runs once per 60 s window (``prml2_edge.evaluation.protocol.run_window``, recording its outputs);
 every filter variant then replays those outputs (``ReplayModel``: the model's z never depends on the filter),
-so each row differs from the next by one choice only, on the same windows. Variants:
+so each row differs from the next by one choice only, on the same windows. A variant whose model reads its inputs
+less the cue estimator's offsets (``model_inputs_from_cues``) replays the outputs of a second run that read them
+so. Variants:
 
 * ``paper filter``: the paper's 8-state EKF on the model's z (``calibration off``);
 * ``previous default``: the calibrating filter as shipped before issue 26's redesign (the model's omega_z carries
@@ -80,6 +82,7 @@ from prml2_edge.evaluation.protocol import (
     ModelSpec,
     build_model,
     filter_override,
+    model_reads_cues,
     run_all,
     run_window,
     split_tasks,
@@ -244,18 +247,24 @@ def gain_known(task, gain: float, residual: float):
 
 
 def _one_task(args):
-    """Worker: the model once on ``task``, then every variant on its recorded outputs, then the bounds (``bounds``:
-    name -> (spec, gain, residual); an OSD spec runs itself)."""
+    """Worker: the model once on ``task`` per way of reading its inputs (raw, or less the cues' offsets:
+    ``model_reads_cues``), every variant on the recorded outputs of its way, then the bounds (``bounds``: name ->
+    (spec, gain, residual)); an OSD spec runs itself."""
     specs, task, bounds = args
-    (first_name, first), *rest = specs.items()
-    rec = RecordingModel(build_model(first, task.bias))
-    out = {first_name: run_window(first, task, model=rec)}
-    for name, spec in rest:
-        out[name] = run_window(spec, task, model=ReplayModel(rec.records, rec.metadata))
+    recorded: dict[bool, RecordingModel] = {}  # the model's outputs, by whether it read the cues' offsets out
+
+    def run(spec, this_task):
+        if spec.kind == "osd":
+            return run_window(spec, this_task)
+        reads = model_reads_cues(spec)
+        if reads not in recorded:
+            recorded[reads] = RecordingModel(build_model(spec, task.bias))
+            return run_window(spec, this_task, model=recorded[reads])
+        return run_window(spec, this_task, model=ReplayModel(recorded[reads].records, recorded[reads].metadata))
+
+    out = {name: run(spec, task) for name, spec in specs.items()}
     for name, (spec, gain, residual) in bounds.items():
-        known = gain_known(task, gain, residual)
-        out[name] = run_window(spec, known, model=None if spec.kind == "osd" else
-                               ReplayModel(rec.records, rec.metadata))
+        out[name] = run(spec, gain_known(task, gain, residual))
     return out
 
 
@@ -336,9 +345,10 @@ def per_car(res: list, osd: list) -> dict:
 
 def check_replay_is_exact(specs: dict[str, ModelSpec], task) -> float:
     """Largest position difference [m] between the default variant on replayed outputs and on the model itself."""
-    name = DEFAULT
-    replayed = _one_task(({name: specs[name]}, task, {}))[name]
-    direct = run_window(specs[name], task)
+    spec = specs[DEFAULT]
+    rec = RecordingModel(build_model(spec, task.bias))
+    direct = run_window(spec, task, model=rec)
+    replayed = run_window(spec, task, model=ReplayModel(rec.records, rec.metadata))
     return float(np.max(np.abs(replayed.pose - direct.pose)))
 
 

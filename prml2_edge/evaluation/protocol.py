@@ -305,10 +305,22 @@ def _localizer_config(spec: ModelSpec, task: WindowTask, stride: int):
                   gnss_heading_min_speed_mps=GNSS_HEADING_MIN_SPEED_MPS)
     if spec.kind == "osd":  # the low-mu inflation is for a model trained on dry roads; OSD's noise was tuned as it is
         kwargs["low_mu_model_var_scale"] = 1.0
+        kwargs["model_inputs_from_cues"] = False  # the baseline integrates the raw CAN values
     kwargs |= car_settings(task.vehicle)
     kwargs |= dict(spec.filter)
     return LocalizerConfig(stride=stride, mu=task.mu, fuse_gnss=bool(task.preroll), calibration=spec.calibration,
                            **kwargs)
+
+
+def model_reads_cues(spec: ModelSpec) -> bool:
+    """Whether ``spec``'s model reads its inputs less the cue estimator's offsets (``model_inputs_from_cues``): two
+    specs that differ here give the model different windows, so one's recorded outputs cannot replay the other's."""
+    from prml2_edge.runtime.localizer import LocalizerConfig
+
+    if spec.kind == "osd" or not spec.calibration:
+        return False
+    cfg = LocalizerConfig(calibration=True, **dict(spec.filter))
+    return bool(cfg.cue_offset and cfg.model_inputs_from_cues)
 
 
 def start_state(task: WindowTask) -> np.ndarray:

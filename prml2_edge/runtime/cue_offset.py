@@ -191,6 +191,15 @@ class CueOffset:
         """Between two drives of one car: what was learned of the cues' offsets stays, ``b`` back to its prior."""
         self.restore(*self.nuisance())
 
+    def debiased(self, values: np.ndarray) -> np.ndarray:
+        """A copy of one row ``values`` (9,) [SI, canonical order] with the lateral accelerometer's offset ``c`` and
+        the steering wheel's (``d`` times the steering ratio and the nominal wheelbase: the steering cue's slope is
+        that offset over them) taken out: what a model reads next to this estimator."""
+        out = np.array(values, dtype=np.float64, copy=True)
+        out[_AY] -= float(self.theta[1])
+        out[_STEER] -= float(self.theta[3]) * self.steering_ratio * NOMINAL_WHEELBASE_M
+        return out
+
     @property
     def offset(self) -> tuple[float, float]:
         """``(b, its standard deviation)`` [rad/s]: a coarse gyro's from the grid once it took over, else the

@@ -256,7 +256,7 @@ class StreamingLocalizer:
         valid = np.asarray(valid, dtype=bool)
         all_valid = bool(np.all(valid))
         model_ok = all_valid or (substituted is not None and bool(np.all(valid | substituted)))
-        est = self.estimator.step(values, model_ok, discontinuity)
+        est = self.estimator.step(self._model_row(values), model_ok, discontinuity)
         fix = gnss if (gnss is not None and gnss.valid and self.config.fuse_gnss) else None
         t_filter = time.perf_counter_ns()
         res = self.filter.step(values, valid, t_s, est, fix, substituted, substitute_std)
@@ -268,6 +268,14 @@ class StreamingLocalizer:
         out.cues_used, out.standstill = res.cues_used, res.standstill
         out.infer_ns, out.guard_ns, out.filter_ns = est.infer_ns, est.guard_ns, filter_ns
         return out
+
+    def _model_row(self, values: np.ndarray) -> np.ndarray:
+        """The row the model reads: ``values``, or with ``model_inputs_from_cues`` a copy less the cues' offsets
+        the filter's cue estimator has learned so far (the filter reads the raw row)."""
+        cues = self.filter.cue_offset
+        if cues is None or not self.config.model_inputs_from_cues:
+            return values
+        return cues.debiased(values)
 
     def _output(self, t_s: float, ekf_status: StepStatus | None, est: Estimate, model_used: bool,
                 gnss_fused: bool, valid: np.ndarray, all_valid: bool, standstill: bool = False) -> StepOutput:
@@ -380,7 +388,7 @@ class StreamingLocalizer:
                     # the start row only feeds the window: x[start_index] is x0 itself
                     self.k += 1
                     ok = bool(valid_arr[i].all())
-                    est = self.estimator.step(onboard[i], ok)
+                    est = self.estimator.step(self._model_row(onboard[i]), ok)
                     out = self._output(float(times[i]), None, est, False, False, valid_arr[i], ok)
                 else:
                     out = self.step(onboard[i], valid_arr[i], float(times[i]), fixes.get(i))

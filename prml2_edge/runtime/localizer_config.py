@@ -170,6 +170,12 @@ class LocalizerConfig:
     # +5.7 m worse: the kept a_y offset is most of what the kept cues give them (docs/ablation.md). 0.042 with the
     # steering's 0.14 chosen on validation; 0.03 before
     cue_ay_restore_floor_mps2: float = AY_RESTORE_FLOOR_MPS2
+    # The model reads the lateral acceleration and the steering-wheel angle less the offsets the cue estimator has
+    # learned of them (the calibration file's and the drive so far's; runtime/cue_offset.py), as it reads the gyro
+    # through its gain: a model passes part of a cue's offset into its omega_z (on validation's ReV-StED-like car
+    # the true offsets taken out of its inputs took its window-mean omega_z error from 0.12 to 0.03 deg/s). Needs
+    # calibration and cue_offset; off: the raw CAN values, as before
+    model_inputs_from_cues: bool = False
 
     def __post_init__(self) -> None:
         if self.stride < 1:

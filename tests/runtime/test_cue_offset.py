@@ -359,3 +359,21 @@ def test_a_blur_wider_than_the_grid_still_gives_an_offset() -> None:
     b, std = grid.offset
     assert math.isfinite(b) and 0.0 < std <= math.radians(0.5)
 
+
+
+def test_a_model_next_to_the_estimator_reads_the_cues_less_their_learned_offsets() -> None:
+    """The rows ``rows`` makes carry an a_y offset c and a steering offset d: learned over minutes of driving,
+    :meth:`CueOffset.debiased` takes them out of a row (a copy), leaving every other signal as it was."""
+    b, c, k, d = math.radians(0.3), 0.15, 0.002, 0.0008
+    drive = rows(5 * 60 * 50, b, c, k, d, seed=5)
+    est = CueOffset(math.radians(0.5), RATIO)
+    row = drive[-1].copy()
+    np.testing.assert_array_equal(est.debiased(row), row)  # nothing learned yet: the row as it is
+    feed(est, drive)
+    out = est.debiased(row)
+    np.testing.assert_array_equal(row, drive[-1])  # the caller's row is not touched
+    ay, steer = _SIG["lat_accel_mps2"].index, _SIG["steering_wheel_angle_rad"].index
+    assert out[ay] == pytest.approx(row[ay] - c, abs=0.02)
+    assert out[steer] == pytest.approx(0.0, abs=math.radians(0.1))  # the straight's steering less its offset
+    others = [i for i in range(schema.NUM_SIGNALS) if i not in (ay, steer)]
+    np.testing.assert_array_equal(out[others], row[others])

@@ -329,3 +329,44 @@ def test_the_front_axle_cue_is_steer_corrected():
 def test_an_unknown_driven_axle_is_refused():
     with pytest.raises(ValueError, match="driven_axle must be 'front' \\(FWD\\), 'rear' \\(RWD\\) or 'all'"):
         LocalizerConfig(driven_axle="fwd")
+
+
+class _Reads:
+    """The real model, keeping the newest row of every window it was given."""
+
+    def __init__(self, inner) -> None:
+        self.inner, self.rows = inner, []
+        self.window_len, self.decoder_len = inner.window_len, inner.decoder_len
+
+    mean = property(lambda self: self.inner.mean)
+    var = property(lambda self: self.inner.var)
+
+    def step(self, window):
+        self.rows.append(np.array(window[0, -1]))
+        return self.inner.step(window)
+
+
+def test_the_model_reads_a_y_and_steering_less_the_offsets_the_car_taught(model_path, drive):
+    """With ``model_inputs_from_cues`` the model's window holds the CAN rows less the cue estimator's a_y and
+    steering offsets (here restored from the calibration file); the filter and the default read them raw."""
+    from prml2_edge.runtime.cue_offset import NOMINAL_WHEELBASE_M, steering_offset
+
+    c, steer_deg = 0.2, 2.0
+    ay, st = schema.SIGNAL_BY_NAME["lat_accel_mps2"].index, schema.SIGNAL_BY_NAME["steering_wheel_angle_rad"].index
+    n = L + 20
+    seen = {}
+    for on in (False, True):
+        model = _Reads(OnnxModel(model_path))
+        loc = StreamingLocalizer(model, LocalizerConfig(model_inputs_from_cues=on))
+        assert loc.restore_cue_offsets([c, 0.0, steering_offset(steer_deg)], np.eye(3) * 1e-8)
+        loc.run_arrays(drive.onboard[:n], gt_state(drive, L - 1), start_index=L - 1)
+        seen[on] = np.array(model.rows)
+    assert len(seen[True]) == len(seen[False]) > 0
+    assert not np.allclose(seen[False][:, ay], seen[False][0, ay])  # the drive's own a_y moves under the shift
+    shift = seen[False] - seen[True]
+    np.testing.assert_allclose(shift[:, ay], c, atol=1e-6)
+    d = steering_offset(steer_deg) * LocalizerConfig().steering_ratio * NOMINAL_WHEELBASE_M
+    assert d == pytest.approx(np.radians(steer_deg))  # the nominal ratio: the steering-wheel offset itself
+    np.testing.assert_allclose(shift[:, st], d, atol=1e-6)
+    others = [i for i in range(schema.NUM_SIGNALS) if i not in (ay, st)]
+    np.testing.assert_allclose(shift[:, others], 0.0)
