@@ -174,7 +174,9 @@ class LocalizerConfig:
     # learned of them (the calibration file's and the drive so far's; runtime/cue_offset.py), as it reads the gyro
     # through its gain: a model passes part of a cue's offset into its omega_z (on validation's ReV-StED-like car
     # the true offsets taken out of its inputs took its window-mean omega_z error from 0.12 to 0.03 deg/s). Needs
-    # calibration and cue_offset; off: the raw CAN values, as before
+    # calibration and cue_offset. Off (the raw CAN values): on validation it helped the fleet's calibrated drives
+    # (dry_val -0.14 m) and lost on the real-car drives (+0.82 m), where an unknown gyro offset's share is left
+    # without the a_y share that cancelled it (docs/ablation.md)
     model_inputs_from_cues: bool = False
 
     def __post_init__(self) -> None:
