@@ -423,9 +423,7 @@ class PoseFilter(GnssFusion):
         if cues.handed_over:  # type: ignore[union-attr]
             # a coarse gyro's grid took over from its blocks (runtime/cue_offset.py): what they told the offset state
             # is forgotten (its variance grows by the prior's) and the grid's whole estimate goes over instead
-            p = self.ekf.P.copy()  # type: ignore[union-attr]
-            p[_B_YAW, _B_YAW] += self.config.cal_yaw_offset_prior_std_radps ** 2
-            self.ekf.P = p  # type: ignore[union-attr]
+            self.ekf.P[_B_YAW, _B_YAW] += self.config.cal_yaw_offset_prior_std_radps ** 2  # type: ignore[union-attr]
             cues.restart_export()  # type: ignore[union-attr]
         measured = cues.export()  # type: ignore[union-attr]
         if measured is not None:
