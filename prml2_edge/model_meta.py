@@ -66,6 +66,12 @@ class ModelMetadata:
         """Rows of ``z_mean``/``z_var``: ``output_rows``, or L - H when the graph returns every decoder step."""
         return int(self.output_rows) if self.output_rows is not None else int(self.L - self.H)
 
+    @property
+    def reads_debiased_cues(self) -> bool:
+        """Whether the model was trained on a_y and steering less the car's offsets (``cue_debiased_inputs``): the
+        runtime then feeds it each row less its cue estimator's offsets."""
+        return bool(self.config.get("cue_debiased_inputs", False))
+
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=True)
 

@@ -68,6 +68,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--omega-residual", action="store_true",
                         help="residual form: the model's omega_z is the CAN yaw rate plus a learned correction "
                              "(zero transformer part at the start) instead of a direct output (default: off)")
+    parser.add_argument("--cue-debiased-inputs", action="store_true",
+                        help="the model reads a_y and steering less the car's offsets: trained on the simulated "
+                             "drives' own, fed the cue estimator's on the car (simulated data only; default: off)")
     parser.add_argument("--pretrain-frac", type=float, metavar="F",
                         help="share of the epochs spent pretraining (default 0.7, the paper; the authors' code 0.8)")
     parser.add_argument("--beta", type=float, help="fine-tuning position-loss scale (default 8, the paper; "
@@ -87,17 +90,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _model_config(args: argparse.Namespace, preset_model, init):
-    """The model's config: ``--init``'s, else the preset's, with ``--omega-residual`` applied."""
+    """The model's config: ``--init``'s, else the preset's, with ``--omega-residual`` and
+    ``--cue-debiased-inputs`` applied."""
     from prml2_edge.training.presets import with_overrides
 
     cfg = init.cfg if init is not None else preset_model
-    if not args.omega_residual:
+    changes = {k: True for k, on in (("omega_residual", args.omega_residual),
+                                     ("cue_debiased_inputs", args.cue_debiased_inputs)) if on}
+    if not changes:
         return cfg
     if init is not None:
         from prml2_edge.errors import ConfigError
 
-        raise ConfigError("--omega-residual changes the model's form: it cannot start from --init's model")
-    return with_overrides(cfg, {"omega_residual": True})
+        flag = "--" + next(iter(changes)).replace("_", "-")
+        raise ConfigError(f"{flag} changes the model's form: it cannot start from --init's model")
+    return with_overrides(cfg, changes)
 
 
 def _run_baseline(args: argparse.Namespace) -> int:
@@ -111,10 +118,11 @@ def _run_baseline(args: argparse.Namespace) -> int:
     from prml2_edge.training.trainer import prepare_data
 
     t0 = time.monotonic()
-    if args.resume or args.no_finetune or args.init or args.omega_residual:
+    if args.resume or args.no_finetune or args.init or args.omega_residual or args.cue_debiased_inputs:
         from prml2_edge.errors import ConfigError
 
-        raise ConfigError("--resume, --init, --no-finetune and --omega-residual apply to --model prml2 only")
+        raise ConfigError("--resume, --init, --no-finetune, --omega-residual and --cue-debiased-inputs apply to "
+                          "--model prml2 only")
     preset = get_preset(args.preset)
     train_cfg = with_overrides(preset.train, {"window_stride": args.window_stride})
     tcfg = BaselineTrainConfig(epochs=6, max_train_windows=4096, lr=2e-3, num_threads=1)

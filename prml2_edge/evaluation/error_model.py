@@ -89,13 +89,18 @@ def model_errors(results, tasks) -> tuple[list[np.ndarray], list[np.ndarray]]:
 
 def measure(model_path: str, dataset, split: str = "val", max_windows: int | None = None, jobs: int = 1) -> dict:
     """Run the exported model at ``model_path`` over ``split``'s 60 s windows (streaming, no calibration) and
-    fit its ``error_model`` entry."""
-    from prml2_edge.evaluation.protocol import ModelSpec, run_all, split_tasks
+    fit its ``error_model`` entry. A model that reads a_y and steering less the car's offsets reads them so here too,
+    less the simulated offsets with the residual the runtime's estimator leaves (``data.cue_debias``)."""
+    from prml2_edge.evaluation.protocol import ModelSpec, build_model, run_all, split_tasks
 
+    spec = ModelSpec("model", "onnx", str(model_path))
+    if build_model(spec).metadata.reads_debiased_cues:
+        from prml2_edge.data.cue_debias import debiased_dataset
+
+        dataset = debiased_dataset(dataset)
     tasks = split_tasks(dataset, split, max_windows=max_windows)
     if not tasks:
         raise ValueError(f"the {split} split has no 60 s window with ground truth")
-    spec = ModelSpec("model", "onnx", str(model_path))
     results = run_all([spec], tasks, jobs=jobs)["model"]
     errs, vars_ = model_errors(results, tasks)
     fp = getattr(dataset, "fingerprint", "") or ""

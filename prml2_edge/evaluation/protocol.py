@@ -313,14 +313,16 @@ def _localizer_config(spec: ModelSpec, task: WindowTask, stride: int):
 
 
 def model_reads_cues(spec: ModelSpec) -> bool:
-    """Whether ``spec``'s model reads its inputs less the cue estimator's offsets (``model_inputs_from_cues``): two
-    specs that differ here give the model different windows, so one's recorded outputs cannot replay the other's."""
+    """Whether ``spec``'s model reads its inputs less the cue estimator's offsets (``model_inputs_from_cues``, or a
+    model trained so, ``cue_debiased_inputs``): two specs that differ here give the model different windows, so one's
+    recorded outputs cannot replay the other's."""
     from prml2_edge.runtime.localizer import LocalizerConfig
 
     if spec.kind == "osd" or not spec.calibration:
         return False
     cfg = LocalizerConfig(calibration=True, **dict(spec.filter))
-    return bool(cfg.cue_offset and cfg.model_inputs_from_cues)
+    trained_so = spec.path is not None and _onnx(str(spec.path)).metadata.reads_debiased_cues
+    return bool(cfg.cue_offset and (cfg.model_inputs_from_cues or trained_so))
 
 
 def start_state(task: WindowTask) -> np.ndarray:

@@ -146,6 +146,13 @@ def omega_var_inflation(model: Model, config: LocalizerConfig, coarse: bool = Fa
     return value
 
 
+def reads_debiased_cues(model: Model, config: LocalizerConfig) -> bool:
+    """Whether the model reads each row less the cue estimator's offsets: the config asks for it
+    (``model_inputs_from_cues``), or the model was trained that way (its metadata's ``cue_debiased_inputs``)."""
+    meta = getattr(model, "metadata", None)
+    return bool(config.model_inputs_from_cues or getattr(meta, "reads_debiased_cues", False))
+
+
 class StreamingLocalizer:
     """Estimator (window -> model -> physics guard) then filter (EKF, cues, GNSS), one 50 Hz row per :meth:`step`.
 
@@ -179,6 +186,7 @@ class StreamingLocalizer:
         self.filter = PoseFilter(cfg, process_noise, initial_pose, self.dt_s)
         self.filter.omega_var_inflation = omega_var_inflation(model, cfg)
         self.filter.omega_var_inflation_coarse = omega_var_inflation(model, cfg, coarse=True)
+        self.model_reads_cues = reads_debiased_cues(model, cfg)
         self.reset()
 
     # the stages' parts that callers read or set (evaluation, the pipeline's summary)
@@ -270,10 +278,11 @@ class StreamingLocalizer:
         return out
 
     def _model_row(self, values: np.ndarray) -> np.ndarray:
-        """The row the model reads: ``values``, or with ``model_inputs_from_cues`` a copy less the cues' offsets
-        the filter's cue estimator has learned so far (the filter reads the raw row)."""
+        """The row the model reads: ``values``, or for a model that reads the cues less their offsets
+        (:func:`reads_debiased_cues`) a copy less those the filter's cue estimator has learned so far (the filter
+        reads the raw row; without calibration there is no estimator and the model reads the raw row too)."""
         cues = self.filter.cue_offset
-        if cues is None or not self.config.model_inputs_from_cues:
+        if cues is None or not self.model_reads_cues:
             return values
         return cues.debiased(values)
 

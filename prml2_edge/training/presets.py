@@ -46,6 +46,11 @@ class ModelConfig:
     # form: at initialisation the correction is the least-squares linear one and the transformer's part is zero,
     # so training starts from the gyro instead of learning to reproduce it). False: the paper's direct output.
     omega_residual: bool = False
+    # True: the model reads lateral acceleration and steering-wheel angle less the car's offsets (issue 26). Trained
+    # on drives whose simulated offsets are taken out (less a residual as large as the runtime's cue estimator
+    # leaves); the runtime then feeds it each row less the offsets its cue estimator has learned
+    # (runtime/cue_offset.py, ``CueOffset.debiased``). False: the raw CAN values (the paper).
+    cue_debiased_inputs: bool = False
     num_signals: int = schema.NUM_SIGNALS
     num_states: int = schema.NUM_STATES
 

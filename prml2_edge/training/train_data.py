@@ -71,9 +71,15 @@ def prepare_data(dataset, model_cfg: ModelConfig, train_cfg: TrainConfig) -> Tra
 
     Training windows every ``train_cfg.window_stride`` samples of the training split, validation
     windows every ``train_cfg.val_stride`` samples of the validation split; z statistics and the
-    rows the model's linear skip is fitted on from the training split's samples.
+    rows the model's linear skip is fitted on from the training split's samples. A model with
+    ``cue_debiased_inputs`` reads every drive's a_y and steering less the car's offsets (``data.cue_debias``).
     """
     from prml2_edge.data.windows import build_windows
+
+    if model_cfg.cue_debiased_inputs:
+        from prml2_edge.data.cue_debias import debiased_dataset
+
+        dataset = debiased_dataset(dataset, train_cfg.seed)
 
     train_drives = [d for d in dataset.split("train") if d.has_ground_truth]
     val_drives = [d for d in dataset.split("val") if d.has_ground_truth]

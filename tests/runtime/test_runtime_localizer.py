@@ -340,15 +340,18 @@ class _Reads:
 
     mean = property(lambda self: self.inner.mean)
     var = property(lambda self: self.inner.var)
+    metadata = property(lambda self: self.inner.metadata)
 
     def step(self, window):
         self.rows.append(np.array(window[0, -1]))
         return self.inner.step(window)
 
 
-def test_the_model_reads_a_y_and_steering_less_the_offsets_the_car_taught(model_path, drive):
-    """With ``model_inputs_from_cues`` the model's window holds the CAN rows less the cue estimator's a_y and
-    steering offsets (here restored from the calibration file); the filter and the default read them raw."""
+@pytest.mark.parametrize("asked_by", ["config", "model"])
+def test_the_model_reads_a_y_and_steering_less_the_offsets_the_car_taught(model_path, drive, asked_by, tmp_path):
+    """With ``model_inputs_from_cues``, or a model whose metadata says it was trained so (``cue_debiased_inputs``),
+    the model's window holds the CAN rows less the cue estimator's a_y and steering offsets (here restored from the
+    calibration file); the filter and the default read them raw."""
     from prml2_edge.runtime.cue_offset import NOMINAL_WHEELBASE_M, steering_offset
 
     c, steer_deg = 0.2, 2.0
@@ -356,8 +359,14 @@ def test_the_model_reads_a_y_and_steering_less_the_offsets_the_car_taught(model_
     n = L + 20
     seen = {}
     for on in (False, True):
-        model = _Reads(OnnxModel(model_path))
-        loc = StreamingLocalizer(model, LocalizerConfig(model_inputs_from_cues=on))
+        if asked_by == "model":
+            config = {"cue_debiased_inputs": on}
+            path = make_kinematic_model(tmp_path / f"m{on}.onnx", meta_overrides={"config": config})
+            model, cfg = _Reads(OnnxModel(path)), LocalizerConfig()
+        else:
+            model, cfg = _Reads(OnnxModel(model_path)), LocalizerConfig(model_inputs_from_cues=on)
+        loc = StreamingLocalizer(model, cfg)
+        assert loc.model_reads_cues is on
         assert loc.restore_cue_offsets([c, 0.0, steering_offset(steer_deg)], np.eye(3) * 1e-8)
         loc.run_arrays(drive.onboard[:n], gt_state(drive, L - 1), start_index=L - 1)
         seen[on] = np.array(model.rows)

@@ -339,3 +339,27 @@ def test_omega_residual_model_exports_and_reexports_with_the_same_numbers(tmp_pa
     x = torch.as_tensor(_windows(3, seed=1))
     with torch.no_grad():
         torch.testing.assert_close(again(x)[0], model(x)[0])
+
+
+def test_a_model_trained_on_debiased_cues_says_so_to_the_runtime_and_keeps_it_on_reexport(tmp_path):
+    """``cue_debiased_inputs`` changes what the model reads, not its graph: the metadata carries it, the runtime's
+    metadata reader answers it, and a re-export from the .onnx keeps it."""
+    import dataclasses
+
+    from prml2_edge.model_meta import ModelMetadata
+    from prml2_edge.training.export_onnx import model_from_onnx
+    from prml2_edge.training.presets import with_overrides
+
+    torch.manual_seed(5)
+    cfg = with_overrides(PRESET.model, {"cue_debiased_inputs": True})
+    model = Prml2Model(cfg, NORM_MEAN, NORM_STD, [12.0, 0.0, 0.0, 0.0, 0.0], [7.0, 0.2, 1.2, 1.8, 0.2]).eval()
+    with torch.no_grad():  # distinct weights (the exporter folds identical constants into one)
+        for p in model.parameters():
+            p.add_(torch.randn_like(p) * 0.05)
+    ckpt = make_checkpoint(model, "tiny", PRESET.train, "fp-test", epoch=1, stage="pretrain")
+    path = export_onnx(model, metadata_for(model, ckpt), tmp_path / "d.onnx")
+    meta = read_metadata(path)
+    assert isinstance(meta, ModelMetadata) and meta.reads_debiased_cues
+    assert model_from_onnx(path)[0].cfg.cue_debiased_inputs
+    older = {k: v for k, v in meta.config.items() if k != "cue_debiased_inputs"}
+    assert not dataclasses.replace(meta, config=older).reads_debiased_cues  # models exported before read raw rows
