@@ -96,14 +96,15 @@ def _model_config(args: argparse.Namespace, preset_model, init):
 
     cfg = init.cfg if init is not None else preset_model
     changes = {k: True for k, on in (("omega_residual", args.omega_residual),
-                                     ("cue_debiased_inputs", args.cue_debiased_inputs)) if on}
+                                     ("cue_debiased_inputs", args.cue_debiased_inputs)) if on and not getattr(cfg, k)}
     if not changes:
         return cfg
     if init is not None:
         from prml2_edge.errors import ConfigError
 
         flag = "--" + next(iter(changes)).replace("_", "-")
-        raise ConfigError(f"{flag} changes the model's form: it cannot start from --init's model")
+        raise ConfigError(f"{flag} changes what the model computes or reads, and --init's model was trained without "
+                          "it: train from scratch, or leave the flag out")
     return with_overrides(cfg, changes)
 
 
