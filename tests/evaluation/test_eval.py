@@ -359,17 +359,21 @@ def test_the_low_mu_inflation_is_for_the_learned_model_not_the_osd_baseline():
     assert _localizer_config(spec, task, 1).low_mu_model_var_scale == 3.0
 
 
-def test_only_a_calibrated_learned_model_reads_its_inputs_less_the_cues_offsets():
-    """``model_inputs_from_cues`` changes what the model reads, so a benchmark must not replay one way's outputs for
-    the other (benchmarks/filter_ablation.py): the flag needs the calibrating filter's cue estimator, and the OSD
-    baseline always integrates the raw values."""
+def test_only_a_calibrated_learned_model_reads_its_inputs_less_the_cues_offsets(tmp_path):
+    """``model_inputs_from_cues``, or a model trained on such rows (``cue_debiased_inputs``), changes what the model
+    reads, so a benchmark must not replay one way's outputs for the other (benchmarks/filter_ablation.py): it needs
+    the calibrating filter's cue estimator, and the OSD baseline always integrates the raw values."""
     from prml2_edge.evaluation.protocol import _localizer_config, model_reads_cues
 
+    m = str(make_kinematic_model(tmp_path / "m.onnx"))
+    trained = str(make_kinematic_model(tmp_path / "d.onnx", meta_overrides={"config": {"cue_debiased_inputs": True}}))
     on = (("model_inputs_from_cues", 1.0),)
-    assert not model_reads_cues(ModelSpec("m", "onnx", "m.onnx", calibration=True))
-    assert model_reads_cues(ModelSpec("m", "onnx", "m.onnx", calibration=True, filter=on))
-    assert not model_reads_cues(ModelSpec("m", "onnx", "m.onnx", calibration=True, filter=on + (("cue_offset", 0.0),)))
-    assert not model_reads_cues(ModelSpec("m", "onnx", "m.onnx", filter=on))  # the paper filter: no cue estimator
+    assert not model_reads_cues(ModelSpec("m", "onnx", m, calibration=True))
+    assert model_reads_cues(ModelSpec("m", "onnx", m, calibration=True, filter=on))
+    assert model_reads_cues(ModelSpec("d", "onnx", trained, calibration=True))
+    assert not model_reads_cues(ModelSpec("d", "onnx", trained))  # the paper filter: no cue estimator
+    assert not model_reads_cues(ModelSpec("m", "onnx", m, calibration=True, filter=on + (("cue_offset", 0.0),)))
+    assert not model_reads_cues(ModelSpec("m", "onnx", m, filter=on))
     assert not model_reads_cues(ModelSpec("OSD", "osd", calibration=True, filter=on))
     task = SimpleNamespace(mu=1.0, preroll=0, vehicle="")
     assert not _localizer_config(ModelSpec("OSD", "osd", calibration=True), task, 1).model_inputs_from_cues
