@@ -317,20 +317,27 @@ def test_cli_export_optimize_with_int8_quantises_the_fused_graph(trained, tmp_pa
     assert read_metadata(out).training["int8"] is True
 
 
-def test_omega_residual_model_exports_and_reexports_with_the_same_numbers(tmp_path):
-    """The residual form's yaw-rate pass-through is in the graph: onnxruntime matches torch, and a re-export from
-    the .onnx (config from the metadata, weights from the graph) computes the same numbers."""
-    from prml2_edge.training.export_onnx import model_from_onnx
+def _exported_variant(overrides: dict, seed: int, path):
+    """A tiny PRML2 model with ``overrides`` on the preset's config and distinct random weights, exported to
+    ``path``: ``(model, path)``."""
     from prml2_edge.training.presets import with_overrides
 
-    torch.manual_seed(4)
-    cfg = with_overrides(PRESET.model, {"omega_residual": True})
+    torch.manual_seed(seed)
+    cfg = with_overrides(PRESET.model, overrides)
     model = Prml2Model(cfg, NORM_MEAN, NORM_STD, [12.0, 0.0, 0.0, 0.0, 0.0], [7.0, 0.2, 1.2, 1.8, 0.2]).eval()
     with torch.no_grad():  # distinct weights (the exporter folds identical constants into one)
         for p in model.parameters():
             p.add_(torch.randn_like(p) * 0.05)
     ckpt = make_checkpoint(model, "tiny", PRESET.train, "fp-test", epoch=1, stage="pretrain")
-    path = export_onnx(model, metadata_for(model, ckpt), tmp_path / "r.onnx")
+    return model, export_onnx(model, metadata_for(model, ckpt), path)
+
+
+def test_omega_residual_model_exports_and_reexports_with_the_same_numbers(tmp_path):
+    """The residual form's yaw-rate pass-through is in the graph: onnxruntime matches torch, and a re-export from
+    the .onnx (config from the metadata, weights from the graph) computes the same numbers."""
+    from prml2_edge.training.export_onnx import model_from_onnx
+
+    model, path = _exported_variant({"omega_residual": True}, 4, tmp_path / "r.onnx")
     assert read_metadata(path).config["omega_residual"] is True
     diff = parity(model, path, _windows(20))
     assert diff["mean"] <= 1e-4 and diff["var"] <= 1e-4, diff
@@ -348,16 +355,8 @@ def test_a_model_trained_on_debiased_cues_says_so_to_the_runtime_and_keeps_it_on
 
     from prml2_edge.model_meta import ModelMetadata
     from prml2_edge.training.export_onnx import model_from_onnx
-    from prml2_edge.training.presets import with_overrides
 
-    torch.manual_seed(5)
-    cfg = with_overrides(PRESET.model, {"cue_debiased_inputs": True})
-    model = Prml2Model(cfg, NORM_MEAN, NORM_STD, [12.0, 0.0, 0.0, 0.0, 0.0], [7.0, 0.2, 1.2, 1.8, 0.2]).eval()
-    with torch.no_grad():  # distinct weights (the exporter folds identical constants into one)
-        for p in model.parameters():
-            p.add_(torch.randn_like(p) * 0.05)
-    ckpt = make_checkpoint(model, "tiny", PRESET.train, "fp-test", epoch=1, stage="pretrain")
-    path = export_onnx(model, metadata_for(model, ckpt), tmp_path / "d.onnx")
+    model, path = _exported_variant({"cue_debiased_inputs": True}, 5, tmp_path / "d.onnx")
     meta = read_metadata(path)
     assert isinstance(meta, ModelMetadata) and meta.reads_debiased_cues
     assert model_from_onnx(path)[0].cfg.cue_debiased_inputs
