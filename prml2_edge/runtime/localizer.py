@@ -12,6 +12,7 @@ The pipeline docs/design.md draws, one stage a module:
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Mapping
@@ -30,6 +31,8 @@ from prml2_edge.runtime.localizer_config import LocalizerConfig
 from prml2_edge.runtime.rows import GnssFix
 from prml2_edge.runtime.status import PoseStatus
 from prml2_edge.schema import CalState, EkfState
+
+_log = logging.getLogger(__name__)
 
 __all__ = ["LocalizerConfig", "Model", "StepOutput", "StreamingLocalizer", "Trajectory"]
 
@@ -187,6 +190,10 @@ class StreamingLocalizer:
         self.filter.omega_var_inflation = omega_var_inflation(model, cfg)
         self.filter.omega_var_inflation_coarse = omega_var_inflation(model, cfg, coarse=True)
         self.model_reads_cues = reads_debiased_cues(model, cfg)
+        if self.model_reads_cues and self.filter.cue_offset is None:
+            _log.warning("the model reads a_y and steering less the car's offsets, but with calibration or cue_offset "
+                         "off nothing learns them: it reads the raw CAN values and will drift more; turn calibration "
+                         "on")
         self.reset()
 
     # the stages' parts that callers read or set (evaluation, the pipeline's summary)

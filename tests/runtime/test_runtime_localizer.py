@@ -379,3 +379,15 @@ def test_the_model_reads_a_y_and_steering_less_the_offsets_the_car_taught(model_
     np.testing.assert_allclose(shift[:, st], d, atol=1e-6)
     others = [i for i in range(schema.NUM_SIGNALS) if i not in (ay, st)]
     np.testing.assert_allclose(shift[:, others], 0.0)
+
+
+def test_a_model_trained_on_debiased_cues_without_calibration_says_it_reads_raw_rows(tmp_path, caplog):
+    """Nothing learns the offsets without calibration: the runtime says so once instead of feeding raw rows quietly."""
+    path = make_kinematic_model(tmp_path / "d.onnx", meta_overrides={"config": {"cue_debiased_inputs": True}})
+    with caplog.at_level("WARNING"):
+        StreamingLocalizer(OnnxModel(path), LocalizerConfig(calibration=False))
+    assert "reads the raw CAN values" in caplog.text and "turn calibration on" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        StreamingLocalizer(OnnxModel(path), LocalizerConfig())
+    assert "raw CAN values" not in caplog.text
