@@ -12,7 +12,6 @@ The pipeline docs/design.md draws, one stage a module:
 
 from __future__ import annotations
 
-import logging
 import math
 import time
 from collections.abc import Mapping
@@ -31,8 +30,6 @@ from prml2_edge.runtime.localizer_config import LocalizerConfig
 from prml2_edge.runtime.rows import GnssFix
 from prml2_edge.runtime.status import PoseStatus
 from prml2_edge.schema import CalState, EkfState
-
-_log = logging.getLogger(__name__)
 
 __all__ = ["LocalizerConfig", "Model", "StepOutput", "StreamingLocalizer", "Trajectory"]
 
@@ -190,10 +187,6 @@ class StreamingLocalizer:
         self.filter.omega_var_inflation = omega_var_inflation(model, cfg)
         self.filter.omega_var_inflation_coarse = omega_var_inflation(model, cfg, coarse=True)
         self.model_reads_cues = reads_debiased_cues(model, cfg)
-        if self.model_reads_cues and self.filter.cue_offset is None:
-            _log.warning("the model reads a_y and steering less the car's offsets, but with calibration or cue_offset "
-                         "off nothing learns them: it reads the raw CAN values and will drift more; turn calibration "
-                         "on")
         self.reset()
 
     # the stages' parts that callers read or set (evaluation, the pipeline's summary)
@@ -283,6 +276,15 @@ class StreamingLocalizer:
         out.cues_used, out.standstill = res.cues_used, res.standstill
         out.infer_ns, out.guard_ns, out.filter_ns = est.infer_ns, est.guard_ns, filter_ns
         return out
+
+    @property
+    def raw_rows_warning(self) -> str | None:
+        """Why the model will read raw rows although it wants them less the cues' offsets (calibration or cue_offset
+        off: nothing learns them), for a run a user started to say; None when it reads what it wants."""
+        if not self.model_reads_cues or self.filter.cue_offset is not None:
+            return None
+        return ("the model reads a_y and steering less the car's offsets, but with calibration or cue_offset off "
+                "nothing learns them: it reads the raw CAN values and will drift more; turn calibration on")
 
     def _model_row(self, values: np.ndarray) -> np.ndarray:
         """The row the model reads: ``values``, or for a model that reads the cues less their offsets

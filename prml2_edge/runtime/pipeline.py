@@ -182,6 +182,8 @@ class Pipeline:
         decoder = FrameDecoder(signal_map, db)
         assembler = Assembler.for_map(signal_map, stale_periods=stale_periods)
         localizer = StreamingLocalizer(model, cfg, initial_pose=initial_pose)
+        if localizer.raw_rows_warning:
+            log.warning(localizer.raw_rows_warning)
         checks = Plausibility([s.rate_hz for s in signal_map.signals], plausibility, assembler.substituted)
         pipeline = cls(signal_map, decoder, assembler, localizer, sinks, stats, latency, dbc_path, checks)
         if calibration_file is not None and cfg.calibration:

@@ -382,12 +382,16 @@ def test_the_model_reads_a_y_and_steering_less_the_offsets_the_car_taught(model_
 
 
 def test_a_model_trained_on_debiased_cues_without_calibration_says_it_reads_raw_rows(tmp_path, caplog):
-    """Nothing learns the offsets without calibration: the runtime says so once instead of feeding raw rows quietly."""
+    """Nothing learns the offsets without calibration: a run a user starts says so once instead of feeding raw rows
+    quietly (the benchmark's paper-filter windows, and the export's error model on pre-debiased rows, stay quiet)."""
+    from prml2_edge.runtime.pipeline import Pipeline
+
     path = make_kinematic_model(tmp_path / "d.onnx", meta_overrides={"config": {"cue_debiased_inputs": True}})
     with caplog.at_level("WARNING"):
-        StreamingLocalizer(OnnxModel(path), LocalizerConfig(calibration=False))
+        Pipeline.build(model=path, calibration=False, external_gnss=True)
     assert "reads the raw CAN values" in caplog.text and "turn calibration on" in caplog.text
     caplog.clear()
     with caplog.at_level("WARNING"):
-        StreamingLocalizer(OnnxModel(path), LocalizerConfig())
+        StreamingLocalizer(OnnxModel(path), LocalizerConfig(calibration=False))
+        Pipeline.build(model=path, external_gnss=True)
     assert "raw CAN values" not in caplog.text
