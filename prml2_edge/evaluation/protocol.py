@@ -316,13 +316,12 @@ def model_reads_cues(spec: ModelSpec) -> bool:
     """Whether ``spec``'s model reads its inputs less the cue estimator's offsets (``model_inputs_from_cues``, or a
     model trained so, ``cue_debiased_inputs``): two specs that differ here give the model different windows, so one's
     recorded outputs cannot replay the other's."""
-    from prml2_edge.runtime.localizer import LocalizerConfig
+    from prml2_edge.runtime.localizer import LocalizerConfig, reads_debiased_cues
 
     if spec.kind == "osd" or not spec.calibration:
         return False
     cfg = LocalizerConfig(calibration=True, **dict(spec.filter))
-    trained_so = spec.path is not None and _onnx(str(spec.path)).metadata.reads_debiased_cues
-    return bool(cfg.cue_offset and (cfg.model_inputs_from_cues or trained_so))
+    return bool(cfg.cue_offset and reads_debiased_cues(build_model(spec), cfg))
 
 
 def start_state(task: WindowTask) -> np.ndarray:
