@@ -217,6 +217,8 @@ class CueOffset:
             self._finest = min(self._finest, float(step_radps))
         self._coarse_on = math.isfinite(self._finest) and self._finest >= self.config.coarse_min_step_radps
         if not self._coarse_on or self.config.coarse_min_offset_radps <= 0.0:
+            if self._coarse_on and not self._grid_on and self._nis_n:
+                self.handed_over = True  # the grid from its first run, after blocks that saw the gyro (step unknown)
             self._grid_on = self._coarse_on
         v = self._straight_speed(values, valid)
         if v is None:

@@ -254,6 +254,28 @@ def test_a_coarse_gyros_grid_takes_over_once_it_tells_a_large_offset(b_dps: floa
             LocalizerConfig(cue_offset_coarse_min_offset_radps=bad)
 
 
+def test_a_grid_from_its_first_run_hands_over_from_blocks_that_saw_the_gyro_before_its_step_was_known() -> None:
+    """``coarse_min_offset_radps=0``: the grid from its first run. A gyro whose step the filter learns only after
+    some blocks (a replay's first minutes) had those blocks fused with its readings; when the grid comes on, the
+    filter is told to forget them as at any handover, once. With the step known from the first row there is nothing
+    to forget."""
+    from prml2_edge.runtime.cue_offset import CueOffsetConfig
+
+    step, b = math.radians(1.28), math.radians(-0.4)
+    values = weaving(3 * 60 * 50, b, step)
+    cfg = CueOffsetConfig(coarse_min_offset_radps=0.0)
+    late, known = CueOffset(math.radians(0.5), RATIO, cfg), CueOffset(math.radians(0.5), RATIO, cfg)
+    handovers = {"late": 0, "known": 0}
+    for i, row in enumerate(values):
+        for name, est, step_now in (("late", late, step if i >= 60 * 50 else None), ("known", known, step)):
+            est.row(row, np.isfinite(row), 1.0, step_now)
+            if est.handed_over:
+                handovers[name] += 1
+                est.restart_export()
+    assert late.summary()["coarse_grid"] and known.summary()["coarse_grid"]
+    assert handovers == {"late": 1, "known": 0}
+
+
 def test_the_ekf_takes_the_offset_as_a_measurement_of_its_state() -> None:
     ekf = Ekf(np.zeros(EkfState.DIM), np.eye(EkfState.DIM), calibration=True)
     before = ekf.cal_cov[0, 0]
