@@ -140,6 +140,9 @@ def _offline_lines(pipeline, summary: dict) -> list[str]:
     """The offline schedule's figures: into the summary, and one line for the report."""
     off = summary["offline"] = pipeline.offline
     t = off["timing_s"]
+    if off.get("in_step"):
+        return [f"offline: {off['windows']} windows, each in the filter's step ({off['in_step']}); decode+assemble "
+                f"{t['decode_assemble']:.1f} s, filter and inference {t['filter']:.1f} s"]
     return [f"offline: {off['windows']} windows, {off['workers']} worker(s), {off['batch']} per call; "
             f"decode+assemble {t['decode_assemble']:.1f} s, filter {t['filter']:.1f} s, inference "
             f"{t['inference_workers']:.1f} s (summed over workers), filter waited "

@@ -27,6 +27,7 @@ than cantools frame by frame: the time of stage 1 is in the per-frame checks and
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -38,9 +39,12 @@ import numpy as np
 
 from prml2_edge import schema
 from prml2_edge.errors import ModelError, first_line
+from prml2_edge.runtime.offline_workers import Inline, Processes, free_batch
 from prml2_edge.runtime.rows import AssembledRow
 from prml2_edge.runtime.source import check_log
 from prml2_edge.runtime.status import InferenceStatus
+
+log = logging.getLogger(__name__)
 
 CHUNK_FRAMES = 10_000  # frames per piece (~25 s of driving on the project DBC): bounds memory, keeps stages overlapped
 WINDOWS_PER_TASK = 128  # windows one worker task runs
@@ -103,156 +107,6 @@ class _Values:
         self.n = need
 
 
-def _free_batch(session) -> bool:
-    dim = session.get_inputs()[0].shape[0]
-    return not isinstance(dim, int)
-
-
-def run_windows(session, output_names, input_name, output_rows: int, array: np.ndarray, rows, window_len: int,
-                batch: int = 1):
-    """The windows of ``array`` ending at ``rows``, ``batch`` per call, checked as ``OnnxModel.step`` checks:
-    ``(status (n,) int8 InferenceStatus, mean (n, 5), var (n, 5), last error or '')``, newest decoder row."""
-    n = len(rows)
-    L = window_len
-    status = np.full(n, int(InferenceStatus.SUCCESS), dtype=np.int8)
-    mean = np.zeros((n, schema.NUM_STATES))
-    var = np.ones((n, schema.NUM_STATES))
-    error = ""
-    for b in range(0, n, batch):
-        sel = rows[b:b + batch]
-        x = array[sel[0] - L + 1:sel[0] + 1][None] if len(sel) == 1 else \
-            np.stack([array[i - L + 1:i + 1] for i in sel])
-        try:
-            m, v = session.run(output_names, {input_name: x})
-        except Exception as exc:  # onnxruntime wraps every failure in its own types
-            status[b:b + len(sel)] = int(InferenceStatus.ERROR)
-            error = first_line(exc, 200)
-            continue
-        if m.shape != (len(sel), output_rows, schema.NUM_STATES) or v.shape != m.shape:
-            status[b:b + len(sel)] = int(InferenceStatus.INVALID_OUTPUT)
-            continue
-        # checked over every row, as OnnxModel.step does; the runtime consumes the newest decoder row only
-        bad = ~(np.isfinite(m).all(axis=(1, 2)) & np.isfinite(v).all(axis=(1, 2)) & (v > 0).all(axis=(1, 2)))
-        m, v = m[:, -1], v[:, -1]
-        status[b:b + len(sel)][bad] = int(InferenceStatus.INVALID_OUTPUT)
-        mean[b:b + len(sel)] = m
-        var[b:b + len(sel)] = v
-    return status, mean, var, error
-
-
-def _worker_main(path: str, threads: int, spinning: bool, providers: list, batch: int, tasks, results,
-                 parent: int) -> None:
-    """An inference process: the same session options as the runtime's model, windows in, outputs out.
-    It ends with ``None`` from the parent, or once the parent is gone (killed: nobody would read its results)."""
-    import queue
-
-    import onnxruntime as ort
-
-    from prml2_edge.runtime.inference import session_options
-
-    try:
-        sess = ort.InferenceSession(path, sess_options=session_options(threads, spinning=spinning),
-                                    providers=providers)
-        meta = None
-        from prml2_edge.model_meta import METADATA_KEY, ModelMetadata
-
-        meta = ModelMetadata.from_json(sess.get_modelmeta().custom_metadata_map[METADATA_KEY], source=path)
-    except Exception as exc:  # reported by the parent in one line
-        results.put((-1, first_line(exc, 200)))
-        return
-    names, inp, rows_out, L = list(meta.output_names), meta.input_name, meta.rows, int(meta.L)
-    while True:
-        try:
-            task = tasks.get(timeout=1.0)
-        except queue.Empty:
-            if os.getppid() != parent:
-                return
-            continue
-        if task is None:
-            return
-        task_id, first_row, piece, rows = task
-        t0 = time.perf_counter()
-        out = run_windows(sess, names, inp, rows_out, piece, np.asarray(rows) - first_row, L, batch)
-        results.put((task_id, (*out, time.perf_counter() - t0)))
-
-
-class _Inline:
-    """Windows run in this thread, when the filter asks for them (one worker: nothing to overlap)."""
-
-    def __init__(self, model, batch: int) -> None:
-        self.model, self.batch = model, batch
-        self.busy_s = 0.0
-        self._pending: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-
-    def submit(self, task_id: int, array: np.ndarray, rows: np.ndarray) -> None:
-        self._pending[task_id] = (array, rows)  # (rows written before a submit stay in that array)
-
-    def result(self, task_id: int):
-        array, rows = self._pending.pop(task_id)
-        m = self.model
-        t0 = time.perf_counter()
-        out = run_windows(m.session, m.output_names, m.input_name, m.output_rows, array, rows, m.window_len,
-                          self.batch)
-        self.busy_s += time.perf_counter() - t0
-        return out
-
-    def close(self) -> None:
-        pass
-
-
-class _Processes:
-    """Windows run by ``n`` worker processes, each with its own session (the GIL would serialise threads: the
-    filter is Python and a thread returning from ``session.run`` waits for it)."""
-
-    def __init__(self, model, batch: int, n: int) -> None:
-        import multiprocessing as mp
-
-        ctx = mp.get_context("spawn")  # no fork of onnxruntime's threads
-        self.tasks, self.results = ctx.Queue(), ctx.Queue()
-        choice = getattr(model, "provider_choice", None)
-        providers = list(getattr(choice, "providers", None) or ["CPUExecutionProvider"])
-        args = (str(model.path), int(model.session.get_session_options().intra_op_num_threads),
-                bool(getattr(model, "spinning", False)), providers, batch, self.tasks, self.results, os.getpid())
-        self.procs = [ctx.Process(target=_worker_main, args=args, name=f"prml2-infer-{k}", daemon=True)
-                      for k in range(n)]
-        for p in self.procs:
-            p.start()
-        self.window_len = model.window_len
-        self.done: dict[int, tuple] = {}
-        self.busy_s = 0.0
-
-    def submit(self, task_id: int, array: np.ndarray, rows: np.ndarray) -> None:
-        first = int(rows[0]) - self.window_len + 1
-        self.tasks.put((task_id, first, np.ascontiguousarray(array[first:int(rows[-1]) + 1]), rows.tolist()))
-
-    def result(self, task_id: int):
-        import queue
-
-        while task_id not in self.done:
-            try:
-                got_id, out = self.results.get(timeout=5.0)
-            except queue.Empty:
-                dead = [p.name for p in self.procs if not p.is_alive()]
-                if dead:
-                    raise ModelError(f"offline inference worker(s) {', '.join(dead)} died") from None
-                continue
-            if got_id < 0:
-                raise ModelError(f"offline inference worker cannot load the model ({out})")
-            self.busy_s += out[-1]
-            self.done[got_id] = out[:-1]
-        return self.done.pop(task_id)
-
-    def close(self) -> None:
-        for _ in self.procs:
-            self.tasks.put(None)
-        for p in self.procs:
-            p.join(timeout=5.0)
-            if p.is_alive():
-                p.terminate()
-        self.tasks.close()
-        self.results.close()
-
-
 class PrecomputedModel:
     """Stands in for an :class:`~prml2_edge.runtime.inference.OnnxModel` in the estimator: the outputs of the
     windows :meth:`~prml2_edge.runtime.estimator.Estimator.schedule` names, run ahead of the filter
@@ -268,7 +122,7 @@ class PrecomputedModel:
     def __init__(self, model, batch: int = 1, workers: int = 1, verify: bool = False) -> None:
         if batch < 1 or workers < 1:
             raise ModelError(f"batch size and workers must be >= 1, got {batch}, {workers}")
-        if batch > 1 and not _free_batch(model.session):
+        if batch > 1 and not free_batch(model.session):
             raise ModelError(f"{model.path}: the graph's batch dimension is fixed at 1, so it runs one window per "
                              "call; use --batch-size 1 or a model exported with a free batch dimension")
         self.base = model
@@ -292,7 +146,7 @@ class PrecomputedModel:
         self.n_errors = 0
         self.last_error = ""
         self.wait_s = 0.0  # time the filter waited for an inference [s]
-        self.runner = _Inline(model, self.batch) if self.workers == 1 else _Processes(model, self.batch, self.workers)
+        self.runner = Inline(model, self.batch) if self.workers == 1 else Processes(model, self.batch, self.workers)
 
     @property
     def worker_s(self) -> float:
@@ -373,6 +227,11 @@ def run_offline(pipeline, path: str | Path, batch: int = 1, workers: int | None 
     time per stage in ``pipeline.offline``). ``progress`` is advanced per frame, ``on_rows(n)`` per piece filtered;
     ``on_row(row, out)`` sees every assembled row with its :class:`StepOutput` (``prml2 fleet``'s GNSS drift).
     """
+    if (reason := windows_wait_for_filter(pipeline)) is not None:
+        if batch > 1 or (workers or 1) > 1:
+            log.warning("offline: %s, so every window runs in the filter's step, one at a time (--batch-size and "
+                        "--workers do not apply)", reason)
+        return _run_in_step(pipeline, path, reason, progress, chunk_frames, on_rows, on_row)
     t_start = time.perf_counter()
     loc = pipeline.localizer
     est = loc.estimator
@@ -436,6 +295,59 @@ def run_offline(pipeline, path: str | Path, batch: int = 1, workers: int | None 
     return OfflineResult(problem, n_frames, values.n, len(pre.scheduled), timing)
 
 
+def windows_wait_for_filter(pipeline) -> str | None:
+    """Why this pipeline's model windows cannot run ahead of its filter (None: they can). A model that reads each
+    row less the cue offsets the filter's estimator has learned by then (``StreamingLocalizer.model_reads_cues``)
+    needs the filter to have run up to that row: run ahead on raw rows, it would be fed what it never saw."""
+    loc = pipeline.localizer
+    if loc.model_reads_cues and loc.filter.cue_offset is not None:
+        return "the model reads each row less the cue offsets the filter has learned by then"
+    return None
+
+
+def _run_in_step(pipeline, path: str | Path, reason: str, progress, chunk_frames: int,
+                 on_rows: Callable[[int], None] | None,
+                 on_row: Callable[[AssembledRow, object], None] | None) -> OfflineResult:
+    """:func:`run_offline` for a model whose windows wait for the filter (``reason``): the frames are read and
+    decoded a piece at a time, and every row goes through :meth:`Pipeline._row` with the model run in the
+    estimator's step, as streaming runs it (the same poses, bitwise)."""
+    t_start = time.perf_counter()
+    est = pipeline.localizer.estimator
+    runs0 = est.n_inferences
+    t_assemble = t_filter = 0.0
+    n_frames = n_rows = 0
+    problem = None
+
+    def filter_rows(rows: list[AssembledRow]) -> None:
+        for row in rows:
+            out = pipeline._row(row)
+            if on_row is not None:
+                on_row(row, out)
+        if on_rows is not None and rows:
+            on_rows(len(rows))
+
+    for frames, piece_problem in [*read_chunks(path, chunk_frames), (None, None)]:
+        problem = problem or piece_problem
+        t0 = time.perf_counter()
+        if frames is None:  # the end of the log: what the assembler still holds
+            rows = [pipeline.check(r) for r in pipeline.assembler.flush()]
+        else:
+            rows = _decode_chunk(pipeline, frames)
+            n_frames += len(frames)
+            if progress is not None:
+                progress.update(len(frames))
+        t1 = time.perf_counter()
+        filter_rows(rows)
+        n_rows += len(rows)
+        t_assemble, t_filter = t_assemble + t1 - t0, t_filter + time.perf_counter() - t1
+    windows = est.n_inferences - runs0
+    timing = {"decode_assemble": t_assemble, "filter": t_filter, "inference_workers": 0.0,
+              "filter_waited_for_inference": 0.0, "total": time.perf_counter() - t_start}
+    pipeline.offline = {"model": f"{est.model.describe()}; offline: inference in the filter's step ({reason})",
+                        "windows": windows, "workers": 0, "batch": 1, "timing_s": timing, "in_step": reason}
+    return OfflineResult(problem, n_frames, n_rows, windows, timing)
+
+
 def _decode_chunk(pipeline, frames: list) -> list[AssembledRow]:
     """Decode and assemble one chunk of frames (frame accounting in the pipeline's stats); its checked rows."""
     decoder, assembler, stats = pipeline.decoder, pipeline.assembler, pipeline.stats
@@ -456,4 +368,5 @@ def _record_schedule(pipeline, pre: PrecomputedModel, timing: dict[str, float]) 
                         "batch": pre.batch, "timing_s": timing}
 
 
-__all__ = ["OfflineResult", "PrecomputedModel", "default_workers", "read_chunks", "run_offline"]
+__all__ = ["OfflineResult", "PrecomputedModel", "default_workers", "read_chunks", "run_offline",
+           "windows_wait_for_filter"]

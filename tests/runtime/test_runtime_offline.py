@@ -5,12 +5,15 @@ faults (checksum errors, a dropped message, duplicated frames, error frames, a f
 clock jump back, a 6 s bus silence that re-anchors the grid, a yaw-rate offset, a second sender
 replaying wheel-speed frames, a wheel reading 20 % high), written as a candump log and replayed
 twice with the shipped model: through the virtual bus frame by frame (``run_source``) and on the
-offline schedule (``run_offline``, worker processes and in-thread). Poses, statuses, the summary and
+offline schedule (``run_offline``: in the filter's step for a model that reads rows less the filter's cue
+offsets, else worker processes and in-thread). Poses, statuses, the summary and
 the frame accounting must agree; the trajectories to 1e-6 m (they agree bitwise: same session
 options, one window per ``session.run``).
 """
 
 from __future__ import annotations
+
+import logging
 
 import can
 import numpy as np
@@ -25,7 +28,8 @@ from prml2_edge.errors import ModelError
 from prml2_edge.resources import project_dbc_path
 from prml2_edge.runtime.estimator import Estimator
 from prml2_edge.runtime.inference import OnnxModel, default_model_path
-from prml2_edge.runtime.offline import run_offline
+from prml2_edge.runtime.localizer import LocalizerConfig
+from prml2_edge.runtime.offline import run_offline, windows_wait_for_filter
 from prml2_edge.runtime.pipeline import MemorySink, Pipeline, run_source
 from prml2_edge.runtime.source import LogReplay
 from prml2_edge.runtime.status import InferenceStatus
@@ -81,14 +85,26 @@ def comparable(summary: dict) -> dict:
 
 
 @pytest.fixture(scope="module")
-def stream_run(faulty_log):
-    return streaming(faulty_log, default_model_path())
+def stream_runs(faulty_log):
+    """The streaming run of the faulty log with the shipped model, per calibration setting (each run once)."""
+    runs: dict[bool, tuple] = {}
+
+    def get(calibration: bool):
+        if calibration not in runs:
+            runs[calibration] = streaming(faulty_log, default_model_path(), calibration=calibration)
+        return runs[calibration]
+    return get
 
 
-@pytest.mark.parametrize("workers", [2, 1])
-def test_offline_replay_of_a_faulty_log_gives_the_streaming_poses(faulty_log, stream_run, workers):
-    ps, a, outs_s = stream_run
-    po, b, outs_o, result = offline(faulty_log, default_model_path(), workers)
+@pytest.mark.parametrize("workers, calibration", [(2, True), (2, False), (1, False)])
+def test_offline_replay_of_a_faulty_log_gives_the_streaming_poses(faulty_log, stream_runs, workers, calibration):
+    """The shipped model reads rows less the cue offsets the filter learns: with calibration on its windows run in
+    the filter's step; with it off they run ahead of the filter (worker processes, or in the filter's thread)."""
+    ps, a, outs_s = stream_runs(calibration)
+    po, b, outs_o, result = offline(faulty_log, default_model_path(), workers, calibration=calibration)
+    in_step = calibration and OnnxModel(default_model_path()).metadata.reads_debiased_cues
+    assert (po.offline.get("in_step") is not None) == in_step
+    assert po.offline["workers"] == (0 if in_step else workers)
     fr = ps.stats.as_dict()
     # the log really has the faults the test is about
     assert fr["rejected_by_reason"].get("checksum") and fr["rejected_by_reason"].get("counter")
@@ -114,6 +130,26 @@ def test_offline_replay_of_a_faulty_log_gives_the_streaming_poses(faulty_log, st
         [(o.inferred, o.guard_fired, o.gnss_fused) for o in outs_s]
     # every counter: frames by outcome and per signal, rows, estimator, filter, calibration
     assert comparable(po.summary()) == comparable(ps.summary())
+
+
+def test_a_model_reading_rows_less_the_filters_cue_offsets_runs_in_the_filters_step(faulty_log, tmp_path, caplog):
+    """Its windows depend on what the filter has learned by each row, so they cannot run ahead of it: run ahead on
+    raw rows they would differ from the streaming estimator's (the check here caught it). Asked for workers and a
+    batch, the run says they do not apply and gives the streaming poses."""
+    model = make_kinematic_model(tmp_path / "kin_cues.onnx")
+    cfg = LocalizerConfig(model_inputs_from_cues=True)
+    ps, a, _ = streaming(faulty_log, model, localizer_config=cfg)
+    with caplog.at_level(logging.WARNING, logger="prml2_edge.runtime.offline"):
+        po, b, _, result = offline(faulty_log, model, workers=2, localizer_config=LocalizerConfig(
+            model_inputs_from_cues=True))
+    assert "do not apply" in caplog.text
+    assert po.offline["in_step"] and po.offline["workers"] == 0
+    assert result.inferences == ps.localizer.n_inferences == po.offline["windows"] > 0
+    assert np.array_equal(a["x"], b["x"], equal_nan=True)
+    assert comparable(po.summary()) == comparable(ps.summary())
+    raw = Pipeline.build(model=OnnxModel(model), localizer_config=LocalizerConfig(model_inputs_from_cues=True,
+                                                                                 calibration=False))
+    assert windows_wait_for_filter(raw) is None  # no cue estimator: it reads raw rows, which can run ahead
 
 
 def test_stride_and_batched_calls_follow_the_streaming_schedule(faulty_log, tmp_path):
